@@ -1,0 +1,22 @@
+"""jaxfog: a differentiable volumetric path tracer for homogeneous fog, in JAX.
+
+Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror`, `Glass`, `PointLight`,
+`SpotLight`, `AreaLight`, `HenyeyGreenstein`, `HomogeneousMedium`, `Scene`), `render`, scene files
+(`load_scene`, `SceneError`) and image I/O (`write_exr`, `read_exr`, `write_png`).
+"""
+
+from ._bsdf import AbstractBSDF as AbstractBSDF, Diffuse as Diffuse, Glass as Glass, Mirror as Mirror
+from ._camera import Camera as Camera
+from ._lights import (
+    AbstractLight as AbstractLight,
+    AreaLight as AreaLight,
+    PointLight as PointLight,
+    SpotLight as SpotLight,
+)
+from ._medium import HomogeneousMedium as HomogeneousMedium
+from ._phase import HenyeyGreenstein as HenyeyGreenstein
+from ._render import render as render
+from ._scene import Scene as Scene
+from ._shapes import Rectangle as Rectangle, Sphere as Sphere
+
+__version__ = "0.1.0"

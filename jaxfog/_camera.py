@@ -1,0 +1,41 @@
+"""Pinhole camera (conventions.md): `fov` is the full horizontal field of view; pixel (0, 0) is the top-left."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._math import cross, safe_normalize
+
+
+def _vec3(x) -> Float[Array, "3"]:
+    return jnp.asarray(x, dtype=jnp.float32).reshape(3)
+
+
+def _scalar(x) -> Float[Array, ""]:
+    return jnp.asarray(x, dtype=jnp.float32).reshape(())
+
+
+class Camera(eqx.Module):
+    """Pinhole camera at `origin` looking at `target` with `up` (scene units), horizontal `fov` in degrees (0, 180),
+    image `width` x `height` pixels (static: a new resolution compiles a new program)."""
+
+    origin: Float[Array, "3"] = eqx.field(converter=_vec3)
+    target: Float[Array, "3"] = eqx.field(converter=_vec3)
+    up: Float[Array, "3"] = eqx.field(converter=_vec3)
+    fov: Float[Array, ""] = eqx.field(converter=_scalar)
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+
+    def generate_ray(self, pixel: Float[Array, "2"]) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+        """Ray `(origin, unit direction)` through the film position `pixel = (x, y)` in pixels, x to the right and y
+        down from the top-left corner (so pixel (col, row)'s square is [col, col+1] x [row, row+1])."""
+        forward = safe_normalize(self.target - self.origin)
+        right = safe_normalize(cross(forward, self.up))
+        true_up = cross(right, forward)
+        tan_half = jnp.tan(0.5 * jnp.deg2rad(self.fov))
+        sx = (2.0 * pixel[0] / self.width - 1.0) * tan_half
+        sy = (1.0 - 2.0 * pixel[1] / self.height) * tan_half * (self.height / self.width)
+        d = safe_normalize(forward + sx * right + sy * true_up)
+        return self.origin, d

@@ -1,0 +1,413 @@
+"""The volumetric path tracer for one camera path: written for one ray, `vmap`-ed once in `_render`.
+
+The bounce body reads as its stages: intersect -> free flight (medium or surface branch) -> direct light along the
+segment (equiangular, MIS with the free-flight vertex) -> direct light at the vertex (NEE to every light) -> scatter
+(phase function or BSDF) -> update `PathState`. What a scene lacks (fog, glass, area lights, delta lights) is decided
+in Python and never compiled.
+
+Estimators (see `_medium` and `estimators.md`) change only the *sampling* parameters `Proposal(sigma_hat, g_hat)`:
+detached (`stop_gradient` of the medium's values), a caller's fixed proposal, or the medium's own values
+(reparameterized: sampled distances and directions move with the parameters). Every weight is `f(theta) / pdf`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from . import _medium as M
+from ._bsdf import cosine_sample, fresnel_dielectric, reflect, refract
+from ._lights import AreaLight, SpotLight, delta_light_radiant_intensity
+from ._math import INV_PI, PI, cross, dot, one_minus_cos_between, safe_div, safe_normalize, safe_sqrt
+from ._phase import hg_pdf, hg_sample
+from ._math import direction_from_cos
+from ._scene import DIFFUSE, EMITTER, GLASS, MIRROR, Packed, Scene
+from ._shapes import intersect_rectangles, intersect_spheres
+
+EPS_OFFSET = 1e-4
+"""Offset (scene units) of rays leaving a surface, along the normal on the side they leave to."""
+
+ESTIMATORS = ("detached", "reparam", "proposal")
+
+
+class Proposal(NamedTuple):
+    """Sampling parameters: `sigma_hat` (scalar sampling extinction, 1/scene unit) and `g_hat` (HG g used to sample)."""
+
+    sigma_hat: Float[Array, ""]
+    g_hat: Float[Array, ""]
+
+
+class Options(NamedTuple):
+    """Static integrator options (hashable): estimator name, equiangular sampling on/off."""
+
+    estimator: str = "detached"
+    equiangular: bool = True
+
+
+class PathState(NamedTuple):
+    o: Float[Array, "3"]
+    d: Float[Array, "3"]
+    beta: Float[Array, "3"]  # throughput, RGB
+    L: Float[Array, "3"]  # accumulated radiance, RGB
+    alive: Array  # bool
+    specular: Array  # bool: last direction came from the camera or a delta BSDF (emitter hits get MIS weight 1)
+    pdf_dir: Float[Array, ""]  # solid-angle pdf of the last sampled direction (for MIS with area lights)
+    in_medium: Array  # bool: outside glass objects, so in the fog
+
+
+def n_dims(scene: Scene) -> int:
+    """Uniform random numbers one bounce consumes."""
+    return 4 + 2 * len(scene.area_lights) + len(scene.delta_lights)
+
+
+def n_iterations(scene: Scene) -> int:
+    """Segments to trace: the last segment (number max_depth) only matters when it can hit an area light."""
+    return scene.max_depth if scene.area_lights else scene.max_depth - 1
+
+
+def make_proposal(scene: Scene, options: Options, proposal=None) -> Proposal:
+    """Sampling parameters for the chosen estimator (see module docstring); `proposal` is a medium for "proposal"."""
+    med = scene.medium
+    if med is None:
+        return Proposal(jnp.float32(1.0), jnp.float32(0.0))
+    if options.estimator == "reparam":
+        return Proposal(M.sampling_extinction(med.sigma_t), med.g)
+    if options.estimator == "detached":
+        return jax.lax.stop_gradient(Proposal(M.sampling_extinction(med.sigma_t), med.g))
+    if options.estimator == "proposal":
+        if proposal is None:
+            raise ValueError('estimator="proposal" needs proposal=<HomogeneousMedium with reference sigma_t and g>')
+        return jax.lax.stop_gradient(Proposal(M.sampling_extinction(proposal.sigma_t), proposal.g))
+    raise ValueError(f"estimator must be one of {ESTIMATORS}, got {options.estimator!r}")
+
+
+# ----------------------------------------------------------------------------------------------------------- geometry
+def intersect(pk: Packed, o, d):
+    """Nearest hit: `(t, index, normal)`; `t = inf` and index 0 on a miss. The normal is the geometric front normal."""
+    ts = []
+    if pk.n_spheres:
+        ts.append(intersect_spheres(o, d, pk.sph_center, pk.sph_radius))
+    if pk.rect_center.shape[0]:
+        ts.append(intersect_rectangles(o, d, pk.rect_center, pk.rect_u, pk.rect_v, pk.rect_normal))
+    if not ts:
+        return jnp.float32(jnp.inf), jnp.int32(0), jnp.array([0.0, 0.0, 1.0], jnp.float32)
+    t_all = jnp.concatenate(ts)
+    idx = jnp.argmin(t_all)
+    t = t_all[idx]
+    p = o + jnp.where(jnp.isfinite(t), t, 0.0) * d
+    normals = []
+    if pk.n_spheres:
+        normals.append(safe_normalize(p[None, :] - pk.sph_center))
+    if pk.rect_center.shape[0]:
+        normals.append(pk.rect_normal)
+    n = jnp.concatenate(normals)[idx]
+    return t, idx, n
+
+
+def occluded(pk: Packed, o, d, dist) -> Array:
+    """Whether anything blocks the segment from `o` along unit `d` before distance `dist` (slightly shortened)."""
+    ts = []
+    if pk.n_spheres:
+        ts.append(intersect_spheres(o, d, pk.sph_center, pk.sph_radius))
+    if pk.rect_center.shape[0]:
+        ts.append(intersect_rectangles(o, d, pk.rect_center, pk.rect_u, pk.rect_v, pk.rect_normal))
+    if not ts:
+        return jnp.bool_(False)
+    return jnp.min(jnp.concatenate(ts)) < dist * (1.0 - 1e-4)
+
+
+def power_heuristic(a, b):
+    """MIS weight `a^2 / (a^2 + b^2)` (0 where both are 0)."""
+    return safe_div(a * a, a * a + b * b)
+
+
+# --------------------------------------------------------------------------------------------------------- lighting
+def delta_incident(light, p):
+    """Unoccluded, untransmitted irradiance factor from a point/spot light at `p`: `(wl, dist, I(-wl) / dist^2)`."""
+    v = light.position - p
+    dist2 = dot(v, v)
+    dist = safe_sqrt(dist2)
+    wl = safe_normalize(v)
+    intensity = delta_light_radiant_intensity(light, -wl)
+    return wl, dist, safe_div(intensity, dist2)
+
+
+def area_sample(light: AreaLight, p, u):
+    """Uniform point on an area light seen from `p`: `(wl, dist, Le (front face only), pdf over solid angle)`."""
+    y = light.center + (u[0] - 0.5) * light.edge_u + (u[1] - 0.5) * light.edge_v
+    v = y - p
+    dist2 = dot(v, v)
+    dist = safe_sqrt(dist2)
+    wl = safe_normalize(v)
+    cos_l = -dot(wl, light.normal)
+    front = cos_l > 0
+    pdf = jnp.where(front, safe_div(dist2, light.area * cos_l), 0.0)
+    return wl, dist, jnp.where(front, light.radiance, 0.0), pdf
+
+
+def area_pdf_hit(light: AreaLight, d, dist):
+    """Solid-angle pdf with which `area_sample` would have produced the direction `d` hitting the light at `dist`."""
+    cos_l = -dot(d, light.normal)
+    return jnp.where(cos_l > 0, safe_div(dist * dist, light.area * cos_l), 0.0)
+
+
+def spot_cone_interval(light: SpotLight, o, d):
+    """Interval `[t0, t1]` (possibly empty: t0 > t1; possibly infinite) where the line `o + t d` is inside the spot's
+    cutoff cone (the forward nappe). Outside it the spot sends no light, so equiangular samples are kept inside."""
+    a = light.direction
+    c2 = jnp.cos(jnp.deg2rad(light.cutoff_angle)) ** 2
+    w = o - light.position
+    da, wa = dot(d, a), dot(w, a)
+    A = da * da - c2
+    B = 2.0 * (da * wa - c2 * dot(d, w))
+    C = wa * wa - c2 * dot(w, w)
+    disc = B * B - 4.0 * A * C
+    sq = safe_sqrt(disc)
+    A_safe = jnp.where(jnp.abs(A) > 1e-12, A, 1e-12)
+    r1 = (-B - sq) / (2.0 * A_safe)
+    r2 = (-B + sq) / (2.0 * A_safe)
+    lo, hi = jnp.minimum(r1, r2), jnp.maximum(r1, r2)
+    inf = jnp.inf
+    # A < 0: inside between the roots (one nappe; check which). A > 0: outside the roots, the nappe d points into.
+    mid = 0.5 * (lo + hi)
+    mid_fwd = (wa + mid * da) >= 0
+    t0_neg = jnp.where((disc >= 0) & mid_fwd, lo, inf)
+    t1_neg = jnp.where((disc >= 0) & mid_fwd, hi, -inf)
+    t0_pos = jnp.where(disc >= 0, jnp.where(da > 0, hi, -inf), jnp.where(wa >= 0, -inf, inf))
+    t1_pos = jnp.where(disc >= 0, jnp.where(da > 0, inf, lo), jnp.where(wa >= 0, inf, -inf))
+    neg = A < 0
+    return jnp.where(neg, t0_neg, t0_pos), jnp.where(neg, t1_neg, t1_pos)
+
+
+def equiangular_setup(light, o, d, s):
+    """Kulla–Fajardo equiangular sampling of `t` in `[ta, tb]` (a sub-interval of `[0, s]`) toward a light's
+    position: returns `(delta, D, theta_a, theta_b, valid)`. For spot lights the interval is clipped to the cone."""
+    c = light.position
+    delta = dot(c - o, d)
+    D = safe_norm_floor(c - o - delta * d)
+    ta, tb = jnp.float32(0.0), s
+    if isinstance(light, SpotLight):
+        c0, c1 = spot_cone_interval(light, o, d)
+        ta, tb = jnp.maximum(ta, c0), jnp.minimum(tb, c1)
+    valid = tb > ta
+    ta = jnp.where(valid, ta, 0.0)
+    tb = jnp.where(valid, tb, 1.0)
+    th_a = jnp.arctan2(ta - delta, D)
+    th_b = jnp.arctan2(tb - delta, D)
+    valid = valid & (th_b > th_a)
+    return delta, D, th_a, th_b, valid
+
+
+def safe_norm_floor(v, floor=1e-7):
+    return jnp.maximum(safe_sqrt(dot(v, v)), floor)
+
+
+def equiangular_pdf(t, delta, D, th_a, th_b, valid):
+    r = t - delta
+    inside = valid & (t >= jnp.tan(th_a) * D + delta) & (t <= jnp.tan(th_b) * D + delta)
+    return jnp.where(inside, D / (jnp.where(valid, th_b - th_a, 1.0) * (D * D + r * r)), 0.0)
+
+
+# ------------------------------------------------------------------------------------------------------- the tracer
+def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d, U) -> Float[Array, "3"]:
+    """Radiance (RGB) arriving at the camera along the ray `(o, d)`; `U` holds `(n_iterations, n_dims)` uniforms."""
+    med = scene.medium
+    has_medium = med is not None
+    kinds = pk.has
+    has_glass = GLASS in kinds
+    delta_lights = scene.delta_lights
+    area_lights = scene.area_lights
+    n_area = len(area_lights)
+    use_equiangular = options.equiangular and has_medium and bool(delta_lights)
+    reparam = options.estimator == "reparam"
+    max_depth = scene.max_depth
+    if has_medium:
+        sigma_t, sigma_s, g = med.sigma_t, med.sigma_s, med.g
+    area_emitter_index = {j: pk.kinds.shape[0] - n_area + j for j in range(n_area)}
+
+    def transmit(dist):
+        return M.transmittance(sigma_t, dist) if has_medium else jnp.ones(3, jnp.float32)
+
+    def nee(p, shadow_o, response, beta, nee_ok, U_b, eq_setups=None, t_vertex=None, ff_pdf=None, dir_pdf=None):
+        """Light sampling from vertex `p`. `response(wl) -> RGB` is phase or BSDF-cosine value; `dir_pdf(wl)` the
+        pdf with which the vertex's own direction sampling would pick `wl` (for MIS with area lights)."""
+        L = jnp.zeros(3, jnp.float32)
+        for i, light in enumerate(delta_lights):
+            wl, dist, E = delta_incident(light, p)
+            vis = ~occluded(pk, shadow_o, wl, dist)
+            c = beta * response(wl) * E * transmit(dist)
+            if eq_setups is not None:  # MIS with the equiangular technique of this segment
+                p_eq = equiangular_pdf(t_vertex, *eq_setups[i])
+                c = c * safe_div(ff_pdf, ff_pdf + p_eq)
+            L = L + jnp.where(nee_ok & vis, c, 0.0)
+        for j, light in enumerate(area_lights):
+            wl, dist, Le, pdf = area_sample(light, p, U_b[4 + 2 * j : 6 + 2 * j])
+            vis = ~occluded(pk, shadow_o, wl, dist)
+            w = power_heuristic(pdf, dir_pdf(wl))
+            c = beta * response(wl) * Le * transmit(dist) * safe_div(w, pdf)
+            L = L + jnp.where(nee_ok & vis & (pdf > 0), c, 0.0)
+        return L
+
+    def body(state: PathState, xs):
+        b, U_b = xs
+        nee_ok = state.alive & (b + 2 <= max_depth)
+        s_hit, idx, n = intersect(pk, state.o, state.d)
+        hit = jnp.isfinite(s_hit)
+        L = state.L
+
+        # ---- free flight: medium branch or surface branch
+        if has_medium:
+            active = state.in_medium
+            s = jnp.minimum(s_hit, med.extent)
+            q, log1mq = M.branch_probability(prop.sigma_hat, s)
+            q = jnp.where(active, q, 0.0)
+            u = U_b[0]
+            is_med = active & (u < q)
+            x = safe_div(u, q)
+            t = M.sample_truncated_exponential(x, prop.sigma_hat, s)
+            t = jnp.where(is_med, t, 0.0)
+            w_med = M.medium_weight(sigma_t, sigma_s, prop.sigma_hat, t, s, jnp.where(is_med, q, 1.0))
+            w_surf = jnp.where(active, M.surface_weight(sigma_t, jnp.where(hit, s, 0.0), log1mq), 1.0)
+            ff_pdf = M.medium_pdf(t, prop.sigma_hat, s, q)
+        else:
+            is_med = jnp.bool_(False)
+            w_surf = jnp.ones(3, jnp.float32)
+
+        # ---- direct light along the segment: equiangular samples, MIS with the free-flight vertex
+        eq_setups = None
+        if use_equiangular:
+            eq_setups = []
+            seg_ok = nee_ok & active
+            for i, light in enumerate(delta_lights):
+                setup = equiangular_setup(light, state.o, state.d, s)
+                delta, D, th_a, th_b, valid = setup
+                th = th_a + U_b[4 + 2 * n_area + i] * (th_b - th_a)
+                te = delta + D * jnp.tan(th)
+                te = jnp.clip(jnp.where(valid, te, 0.0), 0.0, s)
+                p_eq = equiangular_pdf(te, *setup)
+                xe = state.o + te * state.d
+                wl, dist, E = delta_incident(light, xe)
+                vis = ~occluded(pk, xe, wl, dist)
+                f = sigma_s * jnp.exp(-sigma_t * te) * hg_pdf(one_minus_cos_between(state.d, wl), g)
+                p_ff = M.medium_pdf(te, prop.sigma_hat, s, q)
+                c = state.beta * f * E * transmit(dist) * safe_div(1.0, p_eq + p_ff)
+                L = L + jnp.where(seg_ok & valid & vis & (p_eq > 0), c, 0.0)
+                eq_setups.append(setup)
+
+        new = {}
+        # ---- medium vertex
+        if has_medium:
+            p_m = state.o + t * state.d
+            beta_m = state.beta * w_med
+
+            def phase_response(wl):
+                return hg_pdf(one_minus_cos_between(state.d, wl), g)
+
+            def phase_dir_pdf(wl):
+                return hg_pdf(one_minus_cos_between(state.d, wl), prop.g_hat)
+
+            L_m = nee(p_m, p_m, phase_response, beta_m, nee_ok & is_med, U_b,
+                      eq_setups=eq_setups, t_vertex=t, ff_pdf=ff_pdf, dir_pdf=phase_dir_pdf)
+            L = L + L_m
+            omc, opc = hg_sample(U_b[1], prop.g_hat)
+            wo_m = direction_from_cos(omc, opc, 2.0 * PI * U_b[2], state.d)
+            pdf_m = hg_pdf(omc, prop.g_hat)
+            if reparam:  # the direction carries d/dg; its weight p_g / p_g is 1
+                beta_m_next = beta_m
+            else:
+                beta_m_next = beta_m * hg_pdf(omc, g) / pdf_m
+            new["med"] = (p_m, wo_m, beta_m_next, pdf_m)
+
+        # ---- surface vertex
+        p_s = state.o + jnp.where(hit, s_hit, 0.0) * state.d
+        beta_s = state.beta * w_surf
+        surf = state.alive & ~is_med & hit
+        kind = jnp.asarray(pk.kinds)[idx] if pk.kinds.shape[0] else jnp.int32(-1)
+        cos_d = dot(state.d, n)
+        front = cos_d < 0
+        alive_s = surf  # refined below per kind
+        wo_s, beta_s_next, spec_s, pdf_s = state.d, beta_s, jnp.bool_(True), jnp.float32(0.0)
+        in_medium_s = state.in_medium
+
+        if EMITTER in kinds:
+            is_em = surf & (kind == EMITTER) & front
+            Le = pk.emission[idx]
+            w_em = jnp.float32(0.0)
+            for j, light in enumerate(area_lights):
+                pdf_l = area_pdf_hit(light, state.d, s_hit)
+                w_j = jnp.where(state.specular, 1.0, power_heuristic(state.pdf_dir, pdf_l))
+                w_em = jnp.where(idx == area_emitter_index[j], w_j, w_em)
+            L = L + jnp.where(is_em, beta_s * Le * w_em, 0.0)
+            alive_s = alive_s & (kind != EMITTER)
+
+        if DIFFUSE in kinds:
+            is_diff = kind == DIFFUSE
+            R = pk.reflectance[idx]
+            shadow_o = p_s + EPS_OFFSET * n
+
+            def brdf_response(wl):
+                return R * INV_PI * jnp.maximum(dot(n, wl), 0.0)
+
+            def cos_pdf(wl):
+                return jnp.maximum(dot(n, wl), 0.0) * INV_PI
+
+            L = L + nee(p_s, shadow_o, brdf_response, beta_s, nee_ok & surf & is_diff & front, U_b, dir_pdf=cos_pdf)
+            wo_d, pdf_d = cosine_sample(U_b[1:3], n)
+            wo_s = jnp.where(is_diff, wo_d, wo_s)
+            beta_s_next = jnp.where(is_diff, beta_s * R, beta_s_next)
+            spec_s = jnp.where(is_diff, False, spec_s)
+            pdf_s = jnp.where(is_diff, pdf_d, pdf_s)
+            alive_s = alive_s & ~(is_diff & ~front)
+
+        if MIRROR in kinds:
+            is_mir = kind == MIRROR
+            wo_s = jnp.where(is_mir, reflect(state.d, n), wo_s)
+            beta_s_next = jnp.where(is_mir, beta_s * pk.reflectance[idx], beta_s_next)
+
+        if has_glass:
+            is_gl = kind == GLASS
+            int_ior, ext_ior = pk.ior[idx, 0], pk.ior[idx, 1]
+            entering = cos_d < 0
+            n_i = jnp.where(entering, n, -n)
+            eta = jnp.where(entering, int_ior / ext_ior, ext_ior / int_ior)
+            F, cos_t = fresnel_dielectric(jnp.abs(cos_d), eta)
+            refl = U_b[3] < F
+            wo_g = jnp.where(refl, reflect(state.d, n_i), safe_normalize(refract(state.d, n_i, eta, cos_t)))
+            scale = jnp.where(refl, 1.0, 1.0 / (eta * eta))  # radiance compression across the interface
+            wo_s = jnp.where(is_gl, wo_g, wo_s)
+            beta_s_next = jnp.where(is_gl, beta_s * scale, beta_s_next)
+            in_medium_s = jnp.where(is_gl & ~refl, ~entering, in_medium_s)
+
+        # rays leave a surface from the side they go to
+        side = jnp.where(dot(wo_s, n) >= 0, 1.0, -1.0)
+        o_s = p_s + side * EPS_OFFSET * n
+
+        # ---- update the path state
+        if has_medium:
+            p_m, wo_m, beta_m_next, pdf_m = new["med"]
+            o_next = jnp.where(is_med, p_m, o_s)
+            d_next = jnp.where(is_med, wo_m, wo_s)
+            beta_next = jnp.where(is_med, beta_m_next, beta_s_next)
+            spec_next = jnp.where(is_med, False, spec_s)
+            pdf_next = jnp.where(is_med, pdf_m, pdf_s)
+            alive_next = state.alive & (is_med | alive_s)
+        else:
+            o_next, d_next, beta_next, spec_next, pdf_next = o_s, wo_s, beta_s_next, spec_s, pdf_s
+            alive_next = alive_s
+        in_med_next = jnp.where(is_med, state.in_medium, in_medium_s)
+        new_state = PathState(o_next, d_next, jnp.where(alive_next, beta_next, 0.0), L, alive_next,
+                              spec_next, pdf_next, in_med_next)
+        return new_state, None
+
+    init = PathState(
+        o=o, d=d, beta=jnp.ones(3, jnp.float32), L=jnp.zeros(3, jnp.float32), alive=jnp.bool_(True),
+        specular=jnp.bool_(True), pdf_dir=jnp.float32(0.0), in_medium=jnp.bool_(True),
+    )
+    n_iter = U.shape[0]
+    if n_iter == 0:
+        return init.L
+    final, _ = jax.lax.scan(jax.checkpoint(body), init, (jnp.arange(n_iter), U))
+    return final.L

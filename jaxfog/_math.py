@@ -1,0 +1,118 @@
+"""Small, pure vector and numerics helpers shared by every module.
+
+Every "safe" helper here uses the double-`where` idiom: the unsafe input is replaced *before* the singular
+operation, so neither the value nor the gradient of the branch that is not taken can be NaN. Each one is tested for
+value and gradient at its edge in `tests/test_math.py`.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+PI = jnp.pi
+INV_PI = 1.0 / jnp.pi
+INV_4PI = 0.25 / jnp.pi
+
+
+def dot(a: Float[Array, "3"], b: Float[Array, "3"]) -> Float[Array, ""]:
+    """Dot product of two 3-vectors (last axis)."""
+    return jnp.sum(a * b, axis=-1)
+
+
+def cross(a: Float[Array, "3"], b: Float[Array, "3"]) -> Float[Array, "3"]:
+    """Cross product of two 3-vectors."""
+    return jnp.cross(a, b)
+
+
+def safe_sqrt(x: Float[Array, "..."]) -> Float[Array, "..."]:
+    """`sqrt(max(x, 0))` with a finite (zero) gradient at and below 0."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
+
+
+def safe_norm(v: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """Euclidean length over the last axis; 0 with a zero gradient for the zero vector."""
+    return safe_sqrt(jnp.sum(v * v, axis=-1))
+
+
+def safe_normalize(v: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """`v / |v|` over the last axis; the zero vector maps to the zero vector, with a finite gradient."""
+    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    pos = n2 > 0
+    inv = jnp.where(pos, 1.0 / jnp.sqrt(jnp.where(pos, n2, 1.0)), 0.0)
+    return v * inv
+
+
+def safe_div(a: Float[Array, "..."], b: Float[Array, "..."]) -> Float[Array, "..."]:
+    """`a / b`, and 0 (with a zero gradient) where `b == 0`."""
+    nz = b != 0
+    return jnp.where(nz, a / jnp.where(nz, b, 1.0), 0.0)
+
+
+def safe_log(x: Float[Array, "..."]) -> Float[Array, "..."]:
+    """`log(x)` for x > 0, `-inf` for x <= 0, with a zero (finite) gradient there."""
+    pos = x > 0
+    return jnp.where(pos, jnp.log(jnp.where(pos, x, 1.0)), -jnp.inf)
+
+
+def one_minus_exp_neg(x: Float[Array, "..."]) -> Float[Array, "..."]:
+    """`1 - exp(-x)` for x >= 0, accurate for small x (`-expm1(-x)`); equals 1 at x = +inf, gradient 0 there."""
+    fin = jnp.isfinite(x)
+    return jnp.where(fin, -jnp.expm1(-jnp.where(fin, x, 0.0)), 1.0)
+
+
+def exp_neg(x: Float[Array, "..."]) -> Float[Array, "..."]:
+    """`exp(-x)` for x in [0, +inf]; exactly 0 with a zero gradient at +inf (no `0 * inf` in the backward pass)."""
+    fin = jnp.isfinite(x)
+    return jnp.where(fin, jnp.exp(-jnp.where(fin, x, 0.0)), 0.0)
+
+
+def finite_or(x: Float[Array, "..."], fallback: float | Float[Array, "..."]) -> Float[Array, "..."]:
+    """`x` where finite, else `fallback`; the gradient of the replaced entries is zero."""
+    fin = jnp.isfinite(x)
+    return jnp.where(fin, x, fallback)
+
+
+def coordinate_frame(n: Float[Array, "3"]) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+    """Two unit vectors `(s, t)` completing the unit vector `n` to a right-handed orthonormal frame.
+
+    Duff et al. 2017, "Building an Orthonormal Basis, Revisited": branch-free except for the sign, no division by
+    a quantity that can vanish (`1 + |n_z| >= 1`).
+    """
+    sign = jnp.where(n[2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[2])
+    b = n[0] * n[1] * a
+    s = jnp.stack([1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]])
+    t = jnp.stack([b, sign + n[1] * n[1] * a, -n[1]])
+    return s, t
+
+
+def to_world(local: Float[Array, "3"], n: Float[Array, "3"]) -> Float[Array, "3"]:
+    """Rotate `local` (z along `n`) into world space."""
+    s, t = coordinate_frame(n)
+    return local[0] * s + local[1] * t + local[2] * n
+
+
+def direction_from_cos(
+    one_minus_cos: Float[Array, ""], one_plus_cos: Float[Array, ""], phi: Float[Array, ""], axis: Float[Array, "3"]
+) -> Float[Array, "3"]:
+    """Unit vector at polar angle theta around `axis`, given `1 - cos theta` and `1 + cos theta` (both in [0, 2]).
+
+    Carrying both halves keeps `sin theta = sqrt((1 - cos)(1 + cos))` accurate at both poles.
+    """
+    sin_theta = safe_sqrt(one_minus_cos * one_plus_cos)
+    cos_theta = 0.5 * (one_plus_cos - one_minus_cos)
+    local = jnp.stack([sin_theta * jnp.cos(phi), sin_theta * jnp.sin(phi), cos_theta])
+    return to_world(local, axis)
+
+
+def one_minus_cos_between(a: Float[Array, "3"], b: Float[Array, "3"]) -> Float[Array, ""]:
+    """`1 - cos(angle)` between unit vectors a and b, as `|a - b|^2 / 2` (no cancellation near cos = 1)."""
+    d = a - b
+    return 0.5 * jnp.sum(d * d, axis=-1)
+
+
+def luminance(rgb: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """Rec. 709 luminance of linear RGB."""
+    return 0.2126 * rgb[..., 0] + 0.7152 * rgb[..., 1] + 0.0722 * rgb[..., 2]

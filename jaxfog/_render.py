@@ -1,0 +1,104 @@
+"""Rendering: generate rays -> `vmap(trace_path)` -> average, in batches of whole sample layers.
+
+Sample `k` of every pixel draws its random numbers from `fold_in(key, k)`, so an image depends only on the scene, the
+key and spp (never on the batch size), and memory is bounded for any spp.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ._integrator import ESTIMATORS, Options, make_proposal, n_dims, n_iterations, trace_path
+from ._scene import Scene, pack
+
+DEFAULT_BATCH_PATHS = 1 << 16
+"""Paths traced per compiled call (a multiple of the pixel count is used); bounds memory (~1 KiB per path)."""
+
+
+def layers_per_batch(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PATHS) -> int:
+    """Sample layers (one sample of every pixel) per batch: as many as fit in `batch_paths`, at least 1, at most spp."""
+    n_pix = scene.camera.width * scene.camera.height
+    return max(1, min(spp, batch_paths // n_pix))
+
+
+@eqx.filter_jit
+def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: Array, options: Options, proposal):
+    """Sum over the given sample layers of every pixel's radiance: `(H*W, 3)`. Layers at index >= n_valid are padding."""
+    cam = scene.camera
+    H, W = cam.height, cam.width
+    pk = pack(scene)
+    prop = make_proposal(scene, options, proposal)
+    n_iter, K = n_iterations(scene), n_dims(scene)
+    rows, cols = jnp.divmod(jnp.arange(H * W), W)
+    base = jnp.stack([cols, rows], axis=-1).astype(jnp.float32)
+
+    def one_layer(layer_id, valid):
+        k = jax.random.fold_in(key, layer_id)
+        k_pix, k_path = jax.random.split(k)
+        jitter = jax.random.uniform(k_pix, (H * W, 2))
+        U = jax.random.uniform(k_path, (H * W, n_iter, K))
+
+        def one_path(pixel, U_p):
+            o, d = cam.generate_ray(pixel)
+            return trace_path(scene, pk, prop, options, o, d, U_p)
+
+        radiance = jax.vmap(one_path)(base + jitter, U)
+        return jnp.where(valid, radiance, 0.0)
+
+    valid = jnp.arange(layer_ids.shape[0]) < n_valid
+    total = jnp.zeros((H * W, 3), jnp.float32)
+
+    def step(acc, xs):
+        return acc + one_layer(*xs), None
+
+    total, _ = jax.lax.scan(step, total, (layer_ids, valid))
+    return total
+
+
+def render(
+    scene: Scene,
+    key: PRNGKeyArray,
+    spp: int,
+    *,
+    estimator: str = "detached",
+    proposal=None,
+    equiangular: bool = True,
+    batch_paths: int = DEFAULT_BATCH_PATHS,
+    progress: Callable[[int, int], None] | None = None,
+) -> Float[Array, "H W 3"]:
+    """Render `scene` with `spp` samples per pixel: linear RGB radiance, `(height, width, 3)` float32.
+
+    **Arguments:**
+    - `key`: a JAX PRNG key; the same scene, key and spp give the same image.
+    - `estimator`: how derivatives are estimated (values are the same in expectation): `"detached"` (default;
+      detached sampling, attached weights), `"reparam"` (reparameterized free flight and HG), `"proposal"` (sampling
+      from the fixed reference `proposal`, a `HomogeneousMedium`; a smooth deterministic function of the parameters
+      for a fixed key). See `estimators.md`.
+    - `equiangular`: equiangular sampling toward point and spot lights, MIS-combined with free flight.
+    - `batch_paths`: paths per compiled call (memory bound); `progress(done_spp, spp)` is called after each batch.
+
+    Differentiable with `jax.grad`, `jax.jvp`, `jax.jacfwd` with respect to the scene's array fields.
+    """
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    if not isinstance(spp, int) or spp < 1:
+        raise ValueError(f"spp must be a positive integer, got {spp!r}")
+    options = Options(estimator=estimator, equiangular=bool(equiangular))
+    per = layers_per_batch(scene, spp, batch_paths)
+    n_batches = math.ceil(spp / per)
+    H, W = scene.camera.height, scene.camera.width
+    total = jnp.zeros((H * W, 3), jnp.float32)
+    for i in range(n_batches):
+        start = i * per
+        ids = jnp.arange(start, start + per, dtype=jnp.uint32)
+        n_valid = jnp.int32(min(per, spp - start))
+        total = total + _render_layers(scene, key, ids, n_valid, options, proposal)
+        if progress is not None:
+            progress(min(spp, start + per), spp)
+    return (total / spp).reshape(H, W, 3)
