@@ -270,7 +270,7 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             t = M.sample_truncated_exponential(x, prop.sigma_hat, s)
             t = jnp.where(is_med, t, 0.0)
             w_med = M.medium_weight(sigma_t, sigma_s, prop.sigma_hat, t, s, jnp.where(is_med, q, 1.0))
-            w_surf = jnp.where(active, M.surface_weight(sigma_t, jnp.where(hit, s, 0.0), log1mq), 1.0)
+            w_surf = jnp.where(active, M.surface_weight(sigma_t, s, log1mq), 1.0)
             ff_pdf = M.medium_pdf(t, prop.sigma_hat, s, q)
         else:
             is_med = jnp.bool_(False)

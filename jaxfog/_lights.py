@@ -72,11 +72,13 @@ def spot_falloff(cos_theta, cutoff_deg, beam_width_deg) -> Float[Array, ""]:
     `(cutoff - theta) / (cutoff - beam_width)` (radians) between, 0 beyond `cutoff`."""
     cutoff = jnp.deg2rad(cutoff_deg)
     beam = jnp.deg2rad(beam_width_deg)
-    theta = jnp.arccos(jnp.clip(cos_theta, -1.0, 1.0))  # clip: rounding of a dot product of unit vectors
+    inside_beam = cos_theta >= jnp.cos(beam)
+    in_ramp = ~inside_beam & (cos_theta > jnp.cos(cutoff))
+    # double where: arccos has an infinite derivative at +-1, which only the beam/outside branches can reach
+    theta = jnp.arccos(jnp.where(in_ramp, cos_theta, jnp.cos(0.5 * (cutoff + beam))))
     width = cutoff - beam
     ramp = (cutoff - theta) / jnp.where(width > 0, width, 1.0)
-    inside_beam = cos_theta >= jnp.cos(beam)
-    return jnp.where(inside_beam, 1.0, jnp.where(cos_theta > jnp.cos(cutoff), ramp, 0.0))
+    return jnp.where(inside_beam, 1.0, jnp.where(in_ramp, ramp, 0.0))
 
 
 def delta_light_radiant_intensity(light, w_from_light: Float[Array, "3"]) -> Float[Array, "3"]:
