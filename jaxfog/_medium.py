@@ -113,6 +113,8 @@ def surface_weight(sigma_t, s, log_one_minus_q) -> Float[Array, "3"]:
 
 
 def transmittance(sigma_t: Float[Array, "3"], d: Float[Array, ""]) -> Float[Array, "3"]:
-    """Beer–Lambert transmittance `exp(-sigma_t d)` over a distance `d` >= 0 (may be inf), RGB."""
-    d = finite_or(d, 0.0)
-    return jnp.exp(-sigma_t * d)
+    """Beer–Lambert transmittance `exp(-sigma_t d)` over a distance `d` >= 0 (may be inf: 0 where sigma_t > 0, 1 where
+    sigma_t = 0), RGB; the gradient is finite (zero) at d = inf."""
+    fin = jnp.isfinite(d)
+    tr = jnp.exp(-sigma_t * finite_or(d, 0.0))
+    return jnp.where(fin, tr, jnp.where(sigma_t > 0, 0.0, 1.0))
