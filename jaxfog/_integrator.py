@@ -231,24 +231,28 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
     def transmit(dist):
         return M.transmittance(sigma_t, dist) if has_medium else jnp.ones(3, jnp.float32)
 
-    def nee(p, shadow_o, response, beta, nee_ok, U_b, eq_setups=None, t_vertex=None, ff_pdf=None, dir_pdf=None):
-        """Light sampling from vertex `p`. `response(wl) -> RGB` is phase or BSDF-cosine value; `dir_pdf(wl)` the
-        pdf with which the vertex's own direction sampling would pick `wl` (for MIS with area lights)."""
+    def nee(p, shadow_o, response, dir_pdf, beta, ok, U_b, eq_mis=None):
+        """Light sampling from the path vertex `p` (medium or surface; one shadow ray per light).
+
+        `response(wl) -> RGB`: phase value or BRDF x cosine; `dir_pdf(wl)`: pdf with which the vertex's own direction
+        sampling picks `wl` (MIS with area lights); `eq_mis = (setups, t, ff_pdf, is_med)`: balance-heuristic weight
+        against the equiangular technique of the segment, for medium vertices only."""
         L = jnp.zeros(3, jnp.float32)
         for i, light in enumerate(delta_lights):
             wl, dist, E = delta_incident(light, p)
             vis = ~occluded(pk, shadow_o, wl, dist)
             c = beta * response(wl) * E * transmit(dist)
-            if eq_setups is not None:  # MIS with the equiangular technique of this segment
-                p_eq = equiangular_pdf(t_vertex, *eq_setups[i])
-                c = c * safe_div(ff_pdf, ff_pdf + p_eq)
-            L = L + jnp.where(nee_ok & vis, c, 0.0)
+            if eq_mis is not None:
+                setups, t_v, ff_pdf, is_med = eq_mis
+                p_eq = equiangular_pdf(t_v, *setups[i])
+                c = c * jnp.where(is_med, safe_div(ff_pdf, ff_pdf + p_eq), 1.0)
+            L = L + jnp.where(ok & vis, c, 0.0)
         for j, light in enumerate(area_lights):
             wl, dist, Le, pdf = area_sample(light, p, U_b[4 + 2 * j : 6 + 2 * j])
             vis = ~occluded(pk, shadow_o, wl, dist)
             w = power_heuristic(pdf, dir_pdf(wl))
             c = beta * response(wl) * Le * transmit(dist) * safe_div(w, pdf)
-            L = L + jnp.where(nee_ok & vis & (pdf > 0), c, 0.0)
+            L = L + jnp.where(ok & vis & (pdf > 0), c, 0.0)
         return L
 
     def body(state: PathState, xs):
@@ -303,15 +307,6 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             p_m = state.o + t * state.d
             beta_m = state.beta * w_med
 
-            def phase_response(wl):
-                return hg_pdf(one_minus_cos_between(state.d, wl), g)
-
-            def phase_dir_pdf(wl):
-                return hg_pdf(one_minus_cos_between(state.d, wl), prop.g_hat)
-
-            L_m = nee(p_m, p_m, phase_response, beta_m, nee_ok & is_med, U_b,
-                      eq_setups=eq_setups, t_vertex=t, ff_pdf=ff_pdf, dir_pdf=phase_dir_pdf)
-            L = L + L_m
             omc, opc = hg_sample(U_b[1], prop.g_hat)
             wo_m = direction_from_cos(omc, opc, 2.0 * PI * U_b[2], state.d)
             pdf_m = hg_pdf(omc, prop.g_hat)
@@ -346,15 +341,8 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
         if DIFFUSE in kinds:
             is_diff = kind == DIFFUSE
             R = pk.reflectance[idx]
-            shadow_o = p_s + EPS_OFFSET * n
 
-            def brdf_response(wl):
-                return R * INV_PI * jnp.maximum(dot(n, wl), 0.0)
-
-            def cos_pdf(wl):
-                return jnp.maximum(dot(n, wl), 0.0) * INV_PI
-
-            L = L + nee(p_s, shadow_o, brdf_response, beta_s, nee_ok & surf & is_diff & front, U_b, dir_pdf=cos_pdf)
+            surf_nee_ok = surf & is_diff & front
             wo_d, pdf_d = cosine_sample(U_b[1:3], n)
             wo_s = jnp.where(is_diff, wo_d, wo_s)
             beta_s_next = jnp.where(is_diff, beta_s * R, beta_s_next)
@@ -380,6 +368,30 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             wo_s = jnp.where(is_gl, wo_g, wo_s)
             beta_s_next = jnp.where(is_gl, beta_s * scale, beta_s_next)
             in_medium_s = jnp.where(is_gl & ~refl, ~entering, in_medium_s)
+
+        # ---- direct light at the vertex: one NEE for the medium or the (diffuse) surface vertex
+        if has_medium or DIFFUSE in kinds:
+            R_v = pk.reflectance[idx] if DIFFUSE in kinds else jnp.zeros(3, jnp.float32)
+            med_v = is_med if has_medium else jnp.bool_(False)
+            ok_v = nee_ok & (med_v | surf_nee_ok) if DIFFUSE in kinds else nee_ok & med_v
+            p_v = jnp.where(med_v, p_m, p_s) if has_medium else p_s
+            shadow_o = jnp.where(med_v, p_v, p_s + EPS_OFFSET * n)
+            beta_v = jnp.where(med_v, beta_m, beta_s) if has_medium else beta_s
+
+            def response(wl):
+                brdf = R_v * INV_PI * jnp.maximum(dot(n, wl), 0.0)
+                if not has_medium:
+                    return brdf
+                return jnp.where(med_v, hg_pdf(one_minus_cos_between(state.d, wl), g), brdf)
+
+            def dir_pdf(wl):
+                cos_pdf = jnp.maximum(dot(n, wl), 0.0) * INV_PI
+                if not has_medium:
+                    return cos_pdf
+                return jnp.where(med_v, hg_pdf(one_minus_cos_between(state.d, wl), prop.g_hat), cos_pdf)
+
+            eq_mis = (eq_setups, t, ff_pdf, med_v) if use_equiangular else None
+            L = L + nee(p_v, shadow_o, response, dir_pdf, beta_v, ok_v, U_b, eq_mis=eq_mis)
 
         # rays leave a surface from the side they go to
         side = jnp.where(dot(wo_s, n) >= 0, 1.0, -1.0)
