@@ -7,6 +7,7 @@ Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror
 
 from ._bsdf import AbstractBSDF as AbstractBSDF, Diffuse as Diffuse, Glass as Glass, Mirror as Mirror
 from ._camera import Camera as Camera
+from ._image import read_exr as read_exr, write_exr as write_exr, write_png as write_png
 from ._lights import (
     AbstractLight as AbstractLight,
     AreaLight as AreaLight,
@@ -17,6 +18,7 @@ from ._medium import HomogeneousMedium as HomogeneousMedium
 from ._phase import HenyeyGreenstein as HenyeyGreenstein
 from ._render import render as render
 from ._scene import Scene as Scene
+from ._scene_io import SceneError as SceneError, load_scene as load_scene
 from ._shapes import Rectangle as Rectangle, Sphere as Sphere
 
 __version__ = "0.1.0"

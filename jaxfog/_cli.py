@@ -1,0 +1,220 @@
+"""The `jaxfog` command line: `jaxfog render SCENE.json -o OUT.exr [...]` (also `python -m jaxfog`).
+
+Subcommands are entries in `COMMANDS`: a name, a one-line help, `configure(parser)` adding its arguments and
+`run(args) -> exit code`. `bench` and `fit` add themselves there. Expected failures (an invalid scene, a bad argument,
+an unwritable output) print one line `jaxfog: error: ...` and exit non-zero, without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from typing import Callable, NamedTuple
+
+from ._scene_io import SceneError
+
+EXIT_ERROR = 1
+EXIT_USAGE = 2
+
+
+class CliError(Exception):
+    """An expected failure: printed as one line, exit code `EXIT_ERROR`."""
+
+
+class Command(NamedTuple):
+    """A subcommand: `configure(parser)` adds its arguments, `run(args)` returns the exit code."""
+
+    name: str
+    help: str
+    configure: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def _int(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def _float(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+
+
+# ------------------------------------------------------------------------------------------------------------ render
+def _configure_render(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", metavar="SCENE.json", help="scene file (format: notes/ARCHITECTURE.md)")
+    p.add_argument("-o", "--output", metavar="OUT.exr", required=True, help="linear float32 OpenEXR to write")
+    p.add_argument("--spp", type=_positive_int, metavar="N",
+                   help="samples per pixel (default: the file's integrator.spp)")
+    p.add_argument("--seed", type=_int, default=0, metavar="S", help="PRNG seed (default 0); same seed, same image")
+    p.add_argument("--png", metavar="PREVIEW.png", help="also write an 8-bit sRGB preview")
+    p.add_argument("--exposure", type=_float, default=0.0, metavar="E",
+                   help="preview exposure in stops: the PNG shows radiance * 2**E (default 0)")
+    p.add_argument("--estimator", choices=("detached", "reparam"), default="detached",
+                   help="derivative estimator compiled into the renderer (same image in expectation; default detached)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene value, e.g. --set medium.sigma_t=0.8 --set camera.width=32 (repeatable)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _check_output(path: str, ext: str, option: str) -> None:
+    if not path.lower().endswith(ext):
+        raise CliError(f"{option} {path}: expected a {ext} file name")
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise CliError(f"{option} {path}: directory {directory} does not exist")
+
+
+class _CompileTimer:
+    """Sums JAX's tracing, lowering and backend-compile durations (jax.monitoring events) while active."""
+
+    EVENTS = (
+        "/jax/core/compile/jaxpr_trace_duration",
+        "/jax/core/compile/jaxpr_to_mlir_module_duration",
+        "/jax/core/compile/backend_compile_duration",
+    )
+
+    def __init__(self):
+        self.seconds = 0.0
+
+    def _listener(self, event: str, duration: float, **kwargs) -> None:
+        if event in self.EVENTS:
+            self.seconds += duration
+
+    def __enter__(self):
+        import jax.monitoring
+
+        jax.monitoring.register_event_duration_secs_listener(self._listener)
+        return self
+
+    def __exit__(self, *exc):
+        import jax.monitoring
+
+        jax.monitoring.unregister_event_duration_listener(self._listener)
+        return False
+
+
+def _run_render(args: argparse.Namespace) -> int:
+    from ._image import write_exr, write_png
+    from ._scene_io import load_scene
+
+    _check_output(args.output, ".exr", "-o")
+    if args.png:
+        _check_output(args.png, ".png", "--png")
+    sf = load_scene(args.scene, args.overrides)  # validates before anything is compiled
+
+    import jax
+    import numpy as np
+    from tqdm import tqdm
+
+    from ._render import render
+
+    spp = args.spp if args.spp is not None else sf.spp
+    cam = sf.scene.camera
+    t0 = time.perf_counter()
+    with tqdm(total=spp, unit="spp", desc=sf.name, disable=args.no_progress, file=sys.stderr, leave=False) as bar:
+
+        def progress(done: int, total: int) -> None:
+            bar.update(done - bar.n)
+
+        with _CompileTimer() as compile_timer:
+            image = render(sf.scene, jax.random.key(args.seed), spp, estimator=args.estimator, progress=progress)
+            image = np.asarray(image)  # waits for the device
+    wall = time.perf_counter() - t0
+
+    metadata = {
+        "jaxfog:scene": sf.name,
+        "jaxfog:scene_file": os.path.abspath(sf.path),
+        "jaxfog:spp": str(spp),
+        "jaxfog:seed": str(args.seed),
+        "jaxfog:estimator": args.estimator,
+        "jaxfog:medium": json.dumps(sf.data["medium"]),
+        "jaxfog:overrides": json.dumps(list(args.overrides)),
+        "jaxfog:scene_json": json.dumps(sf.data),
+        "jaxfog:version": _version(),
+    }
+    write_exr(args.output, image, metadata)
+    written = [args.output]
+    if args.png:
+        write_png(args.png, image, exposure=args.exposure)
+        written.append(args.png)
+    n_bad = int(np.sum(~np.isfinite(image)))
+    print(
+        f"{sf.name}: {cam.width}x{cam.height}, {spp} spp, seed {args.seed}: mean pixel {float(np.nanmean(image)):.4g}"
+        + (f", {n_bad} non-finite values" if n_bad else "")
+    )
+    print(f"wrote {', '.join(written)}")
+    print(f"compile {compile_timer.seconds:.2f} s, wall {wall:.2f} s "
+          f"(render {max(wall - compile_timer.seconds, 0.0):.2f} s)")
+    return 0
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+COMMANDS: list[Command] = [
+    Command("render", "render a scene file to an OpenEXR (and optionally a PNG preview)",
+            _configure_render, _run_render),
+]
+"""The subcommands, in `--help` order. Add `Command(name, help, configure, run)` entries for new ones."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jaxfog",
+        description="jaxfog: a differentiable fog renderer in JAX.",
+        epilog="Example: jaxfog render data_synthetic/scenes/spot_fog.json -o spot_fog.exr --png spot_fog.png "
+        "--exposure 2 --set medium.sigma_t=0.8",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for cmd in COMMANDS:
+        p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
+        cmd.configure(p)
+        p.set_defaults(_run=cmd.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `jaxfog` console script and `python -m jaxfog`; returns the exit code."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2; argparse has printed the message)
+        return e.code if isinstance(e.code, int) else EXIT_USAGE
+    try:
+        return args._run(args)
+    except (SceneError, CliError, OSError) as e:  # expected failures; anything else is a bug: traceback
+        print(f"jaxfog: error: {_one_line(e)}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("jaxfog: interrupted", file=sys.stderr)
+        return 130
+
+
+def _one_line(e: BaseException) -> str:
+    text = str(e) or type(e).__name__
+    return " ".join(text.split())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

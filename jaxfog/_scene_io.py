@@ -1,0 +1,585 @@
+"""Scene files: JSON -> validated dict -> `Scene` Modules.
+
+The format is described in `notes/ARCHITECTURE.md`. Loading has three stages, and nothing from JAX is built before
+the last one:
+
+1. read the JSON and apply `--set` style overrides (`apply_overrides`);
+2. validate the whole dict against the declarative `SCHEMA` below with one generic validator (`_check`), filling in
+   defaults: every error is a `SceneError` naming the file, the key path and the valid range;
+3. build the Modules (`_build`), each section through the constructor its schema names.
+
+The schema is data: a `Section` maps field names to kinds (`NUMBER`, `INTEGER`, `VEC3`, `RGB`, `TEXT`, another
+`Section`, a `Typed` choice keyed by `"type"`, or a `ListOf` those) with a `Range`, a default and a few named
+cross-field `checks`. Adding a light or a BSDF is one entry in `LIGHTS` / `BSDFS`.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple
+
+__all__ = ["SceneError", "SceneFile", "load_scene", "scene_from_dict", "apply_overrides", "SCHEMA"]
+
+
+class SceneError(ValueError):
+    """A scene file (or an override) is invalid. The message names the file, the key path and the valid range."""
+
+
+class SceneFile(NamedTuple):
+    """A loaded scene file.
+
+    **Fields:** `scene`: the `Scene` Module; `spp`: samples per pixel from `integrator.spp` (default 64); `path`: the
+    file it came from (or `"<dict>"`); `data`: the validated dict, overrides applied and defaults filled in (plain JSON
+    types, ready for `json.dumps`); `name`: the scene's `name`, or the file name without `.json`.
+    """
+
+    scene: Any
+    spp: int
+    path: str
+    data: dict
+    name: str
+
+
+# ------------------------------------------------------------------------------------------------------------ schema
+REQUIRED = object()
+"""Marker default: the field must be given."""
+
+
+@dataclass(frozen=True)
+class Range:
+    """An interval for a number (or every channel of an RGB value). `hi` may name a sibling field (`"cutoff_angle"`),
+    whose validated value is the bound."""
+
+    lo: float | None = None
+    hi: float | str | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def text(self) -> str:
+        lo = "-inf" if self.lo is None else _fmt(self.lo)
+        hi = "inf" if self.hi is None else (self.hi if isinstance(self.hi, str) else _fmt(self.hi))
+        left = "(" if (self.lo_open or self.lo is None) else "["
+        right = ")" if (self.hi_open or self.hi is None) else "]"
+        return f"{left}{lo}, {hi}{right}"
+
+
+ANY = Range()
+POSITIVE = Range(0, None, lo_open=True)
+NON_NEGATIVE = Range(0, None)
+UNIT = Range(0, 1)
+AT_LEAST_1 = Range(1, None)
+
+
+@dataclass(frozen=True)
+class Kind:
+    """A leaf kind: `NUMBER` (finite real), `INTEGER`, `VEC3` (3 finite reals), `RGB` (a number or 3), `TEXT`."""
+
+    name: str
+    expects: str
+
+
+NUMBER = Kind("number", "a number")
+INTEGER = Kind("integer", "an integer")
+VEC3 = Kind("vec3", "a 3-vector [x, y, z]")
+RGB = Kind("rgb", "a number or a list of 3 numbers [r, g, b]")
+TEXT = Kind("text", "a string")
+
+
+@dataclass(frozen=True)
+class Field:
+    """One key of a section: its `kind` (a `Kind`, `Section`, `Typed` or `ListOf`), `default` (`REQUIRED`, a value,
+    or a function of the already validated sibling fields), numeric `range`, and `nonzero` for vectors that must have
+    a length (directions, edges, up)."""
+
+    kind: Any
+    default: Any = REQUIRED
+    range: Range = ANY
+    nonzero: bool = False
+
+
+@dataclass(frozen=True)
+class Section:
+    """A JSON object with known `fields` (in validation order), cross-field `checks` (functions
+    `(values, path) -> None` that raise `_Invalid`), and `build(**values)` that makes its Module (None: a dict)."""
+
+    fields: dict
+    checks: tuple = ()
+    build: Callable | None = None
+
+
+@dataclass(frozen=True)
+class Typed:
+    """A JSON object whose `"type"` key picks one of `choices` (type name -> `Section`)."""
+
+    choices: dict
+
+
+@dataclass(frozen=True)
+class ListOf:
+    """A JSON list whose items all have kind `item`."""
+
+    item: Any
+
+
+class _Invalid(Exception):
+    """Internal: `(key path, what is wrong, valid range or values)`; turned into a `SceneError` with the file name."""
+
+    def __init__(self, path: str, problem: str, valid: str):
+        super().__init__(path, problem, valid)
+        self.path, self.problem, self.valid = path, problem, valid
+
+
+# ----------------------------------------------------------------------------------------- cross-field checks
+def _perpendicular_edges(values: dict, path: str) -> None:
+    """Rectangles and area lights: `edge_u` and `edge_v` perpendicular, to 1e-6 relative."""
+    u, v = values["edge_u"], values["edge_v"]
+    d = _dot(u, v)
+    if abs(d) > 1e-6 * _norm(u) * _norm(v):
+        raise _Invalid(
+            _join(path, "edge_v"),
+            f"{_fmt(v)} is not perpendicular to edge_u {_fmt(u)} (dot product {d:.6g})",
+            "expected dot(edge_u, edge_v) = 0 (relative tolerance 1e-6)",
+        )
+
+
+def _up_not_parallel(values: dict, path: str) -> None:
+    """Camera: a view direction exists and `up` is not parallel to it."""
+    view = [t - o for t, o in zip(values["target"], values["origin"])]
+    if _norm(view) == 0:
+        raise _Invalid(
+            _join(path, "target"), f"{_fmt(values['target'])} equals origin", "expected a point other than origin"
+        )
+    up = values["up"]
+    if _norm(_cross(up, view)) <= 1e-6 * _norm(up) * _norm(view):
+        raise _Invalid(
+            _join(path, "up"),
+            f"{_fmt(up)} is parallel to the view direction target - origin = {_fmt(view)}",
+            "expected an up vector not parallel to target - origin",
+        )
+
+
+# ------------------------------------------------------------------------------------ constructors (lazy JAX import)
+def _make(class_name: str) -> Callable:
+    """A builder calling `jaxfog.<class_name>(**values)`; the import happens only when a scene is built."""
+
+    def build(**values):
+        import jaxfog
+
+        return getattr(jaxfog, class_name)(**values)
+
+    build.__name__ = class_name
+    return build
+
+
+def _build_medium(sigma_t, albedo, g, extent):
+    import jax.numpy as jnp
+
+    from ._medium import HomogeneousMedium
+    from ._phase import HenyeyGreenstein
+
+    # g as a strongly typed float32 (a bare Python float would be weakly typed, and a fit that later passes a float32
+    # array would compile a second program).
+    phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
+    return HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=phase, extent=float(extent))
+
+
+# ---------------------------------------------------------------------------------------------------- the schema
+BSDFS = {
+    "diffuse": Section({"reflectance": Field(RGB, range=UNIT)}, build=_make("Diffuse")),
+    "mirror": Section({"reflectance": Field(RGB, default=1.0, range=UNIT)}, build=_make("Mirror")),
+    "glass": Section(
+        {"int_ior": Field(NUMBER, default=1.5, range=POSITIVE), "ext_ior": Field(NUMBER, default=1.0, range=POSITIVE)},
+        build=_make("Glass"),
+    ),
+}
+
+SHAPES = {
+    "sphere": Section(
+        {"center": Field(VEC3), "radius": Field(NUMBER, range=POSITIVE), "bsdf": Field(Typed(BSDFS))},
+        build=_make("Sphere"),
+    ),
+    "rectangle": Section(
+        {
+            "center": Field(VEC3),
+            "edge_u": Field(VEC3, nonzero=True),
+            "edge_v": Field(VEC3, nonzero=True),
+            "bsdf": Field(Typed(BSDFS)),
+        },
+        checks=(_perpendicular_edges,),
+        build=_make("Rectangle"),
+    ),
+}
+
+LIGHTS = {
+    "point": Section({"position": Field(VEC3), "intensity": Field(RGB, range=NON_NEGATIVE)}, build=_make("PointLight")),
+    "spot": Section(
+        {
+            "position": Field(VEC3),
+            "direction": Field(VEC3, nonzero=True),
+            "intensity": Field(RGB, range=NON_NEGATIVE),
+            "cutoff_angle": Field(NUMBER, default=20.0, range=Range(0, 90, lo_open=True)),
+            "beam_width": Field(
+                NUMBER, default=lambda v: 0.75 * v["cutoff_angle"], range=Range(0, "cutoff_angle", lo_open=True)
+            ),
+        },
+        build=_make("SpotLight"),
+    ),
+    "area": Section(
+        {
+            "center": Field(VEC3),
+            "edge_u": Field(VEC3, nonzero=True),
+            "edge_v": Field(VEC3, nonzero=True),
+            "radiance": Field(RGB, range=NON_NEGATIVE),
+        },
+        checks=(_perpendicular_edges,),
+        build=_make("AreaLight"),
+    ),
+}
+
+CAMERA = Section(
+    {
+        "origin": Field(VEC3),
+        "target": Field(VEC3),
+        "up": Field(VEC3, nonzero=True),
+        "fov": Field(NUMBER, range=Range(0, 180, lo_open=True, hi_open=True)),
+        "width": Field(INTEGER, range=AT_LEAST_1),
+        "height": Field(INTEGER, range=AT_LEAST_1),
+    },
+    checks=(_up_not_parallel,),
+    build=_make("Camera"),
+)
+
+MEDIUM = Section(
+    {
+        "sigma_t": Field(RGB, range=NON_NEGATIVE),
+        "albedo": Field(RGB, range=UNIT),
+        "g": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True)),
+        "extent": Field(NUMBER, default=1000.0, range=POSITIVE),
+    },
+    build=_build_medium,
+)
+
+INTEGRATOR = Section(
+    {"max_depth": Field(INTEGER, default=8, range=AT_LEAST_1), "spp": Field(INTEGER, default=64, range=AT_LEAST_1)}
+)
+
+SCHEMA = Section(
+    {
+        "name": Field(TEXT, default=None),
+        "description": Field(TEXT, default=""),
+        "camera": Field(CAMERA),
+        "integrator": Field(INTEGRATOR, default=lambda v: {}),
+        "medium": Field(MEDIUM, default=None),
+        "shapes": Field(ListOf(Typed(SHAPES)), default=lambda v: []),
+        "lights": Field(ListOf(Typed(LIGHTS)), default=lambda v: []),
+    }
+)
+"""The whole scene file. `medium` absent (or null) means no fog."""
+
+
+# ------------------------------------------------------------------------------------------------- the validator
+def _check(value, spec, path: str, rng: Range = ANY, nonzero: bool = False, siblings: dict | None = None):
+    """Validate `value` against `spec` at key path `path`; return it normalized (floats, defaults filled in)."""
+    if isinstance(spec, Kind):
+        return _check_leaf(value, spec, path, rng, nonzero, siblings or {})
+    if isinstance(spec, ListOf):
+        if not isinstance(value, list):
+            raise _Invalid(path, f"got {_describe(value)}", "expected a list")
+        return [_check(item, spec.item, f"{path}[{i}]") for i, item in enumerate(value)]
+    if isinstance(spec, Typed):
+        names = ", ".join(repr(k) for k in spec.choices)
+        if not isinstance(value, dict):
+            raise _Invalid(path, f"got {_describe(value)}", f"expected an object with \"type\" one of {names}")
+        kind = value.get("type", REQUIRED)
+        if kind is REQUIRED:
+            raise _Invalid(_join(path, "type"), "missing required field", f"valid types: {names}")
+        if not isinstance(kind, str) or kind not in spec.choices:
+            raise _Invalid(_join(path, "type"), f"{kind!r} is not a known type", f"valid types: {names}")
+        out = _check_section({k: v for k, v in value.items() if k != "type"}, spec.choices[kind], path)
+        return {"type": kind, **out}
+    if isinstance(spec, Section):
+        if not isinstance(value, dict):
+            raise _Invalid(path, f"got {_describe(value)}", f"expected an object with keys {_keys(spec)}")
+        return _check_section(value, spec, path)
+    raise TypeError(f"bad schema entry {spec!r}")  # pragma: no cover
+
+
+def _check_section(value: dict, spec: Section, path: str) -> dict:
+    unknown = [k for k in value if k not in spec.fields]
+    if unknown:
+        raise _Invalid(_join(path, unknown[0]), "unknown key", f"valid keys: {_keys(spec)}")
+    out = {}
+    for key, f in spec.fields.items():
+        sub = _join(path, key)
+        if key not in value or (value[key] is None and f.default is None):
+            if f.default is REQUIRED:
+                raise _Invalid(sub, "missing required field", _valid_text(f))
+            default = f.default(out) if callable(f.default) else f.default
+            if default is None:
+                out[key] = None
+                continue
+            value_k = default
+        else:
+            value_k = value[key]
+        out[key] = _check(value_k, f.kind, sub, f.range, f.nonzero, out)
+    for check in spec.checks:
+        check(out, path)
+    return out
+
+
+def _check_leaf(value, kind: Kind, path: str, rng: Range, nonzero: bool, siblings: dict):
+    valid = _valid_text(Field(kind, range=rng, nonzero=nonzero))
+    if kind is TEXT:
+        if not isinstance(value, str):
+            raise _Invalid(path, f"got {_describe(value)}", "expected a string")
+        return value
+    if kind is INTEGER:
+        if not (isinstance(value, int) and not isinstance(value, bool)):
+            raise _Invalid(path, f"got {_describe(value)}", valid)
+        _check_range(value, rng, path, siblings)
+        return value
+    if kind is NUMBER:
+        return _check_range(_number(value, path, valid), rng, path, siblings)
+    if kind is RGB and not isinstance(value, list):
+        return _check_range(_number(value, path, valid), rng, path, siblings)
+    # VEC3, or RGB given as a list
+    if not isinstance(value, list):
+        raise _Invalid(path, f"got {_describe(value)}", valid)
+    if len(value) != 3:
+        raise _Invalid(path, f"got a list of {len(value)}", valid)
+    vec = [_number(x, f"{path}[{i}]", valid) for i, x in enumerate(value)]
+    for i, x in enumerate(vec):
+        _check_range(x, rng, f"{path}[{i}]", siblings)
+    if nonzero and _norm(vec) == 0:
+        raise _Invalid(path, f"{_fmt(vec)} has zero length", valid)
+    return vec
+
+
+def _number(value, path: str, valid: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _Invalid(path, f"got {_describe(value)}", valid)
+    if not math.isfinite(value):
+        raise _Invalid(path, f"{value} is not finite", valid)
+    return float(value)
+
+
+def _check_range(x, rng: Range, path: str, siblings: dict):
+    hi, hi_text = rng.hi, None
+    if isinstance(hi, str):
+        hi_text = f"{hi} {_fmt(siblings[hi])}"
+        hi = siblings[hi]
+    below = rng.lo is not None and (x < rng.lo or (rng.lo_open and x == rng.lo))
+    above = hi is not None and (x > hi or (rng.hi_open and x == hi))
+    if below or above:
+        if above and hi_text is not None:
+            problem = f"{_fmt(x)} is larger than {hi_text}"
+        else:
+            problem = f"{_fmt(x)} is out of range"
+        raise _Invalid(path, problem, f"valid range {rng.text()}")
+    return x
+
+
+def _valid_text(f: Field) -> str:
+    """What a field accepts, as the tail of a message: `expected a number in range (0, 180)`."""
+    kind = f.kind
+    if isinstance(kind, Section):
+        return f"expected an object with keys {_keys(kind)}"
+    if isinstance(kind, Typed):
+        return "expected an object with \"type\" one of " + ", ".join(repr(k) for k in kind.choices)
+    if isinstance(kind, ListOf):
+        return "expected a list"
+    text = f"expected {kind.expects}"
+    if f.nonzero:
+        text += " of nonzero length"
+    if f.range != ANY:
+        text += f" in range {f.range.text()}" if kind is not RGB else f", each in range {f.range.text()}"
+    return text
+
+
+# ------------------------------------------------------------------------------------------------------ overrides
+def apply_overrides(data: dict, overrides=(), source: str = "<dict>") -> dict:
+    """A deep copy of `data` with each override `"dotted.key.path=value"` applied, in order.
+
+    List indices are integers (`shapes.1.bsdf.reflectance=0.3`); the value is parsed as JSON (a bare word that is not
+    JSON is taken as a string). A key the file leaves out but the schema knows may be set (`lights.0.beam_width=10`,
+    `integrator.spp=16`); any other missing path is an error. The result is not validated here; `scene_from_dict`
+    validates after applying overrides.
+    """
+    data = copy.deepcopy(data)
+    for text in overrides:
+        if not isinstance(text, str) or "=" not in text:
+            raise SceneError(f"{_base(source)}: override {text!r}: expected KEY.PATH=VALUE, e.g. medium.sigma_t=0.8")
+        key, raw = text.split("=", 1)
+        parts = key.strip().split(".")
+        if not key.strip() or any(p == "" for p in parts):
+            raise SceneError(f"{_base(source)}: override {text!r}: empty key in {key!r}; expected KEY.PATH=VALUE")
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw.strip()
+        try:
+            _set_path(data, parts, value)
+        except _Invalid as e:
+            raise SceneError(f"{_base(source)}: override {text!r}: {e.path}: {e.problem}; {e.valid}") from None
+    return data
+
+
+def _set_path(data, parts: list, value) -> None:
+    """Set `data[parts...] = value`, walking the schema alongside so that known-but-absent keys may be created."""
+    node, spec, path = data, SCHEMA, ""
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        if isinstance(spec, Typed):  # the object's own "type" picks the schema; "type" itself is in the object
+            spec = spec.choices.get(node.get("type")) if isinstance(node, dict) else None
+        if isinstance(node, list):
+            if not part.lstrip("-").isdigit():
+                raise _Invalid(path, f"{part!r} is not a list index", f"valid indices: 0..{len(node) - 1}")
+            idx = int(part)
+            if not 0 <= idx < len(node):
+                raise _Invalid(f"{path}[{part}]", f"does not exist ({path} has {len(node)} entries)",
+                               f"valid indices: 0..{len(node) - 1}" if node else "the list is empty")
+            sub_path = f"{path}[{idx}]"
+            spec = spec.item if isinstance(spec, ListOf) else None
+            if last:
+                node[idx] = value
+            else:
+                node, path = node[idx], sub_path
+            continue
+        if not isinstance(node, dict):
+            problem = f"does not exist ({path} is {_describe(node)})"
+            raise _Invalid(_join(path, part), problem, "expected an existing key path")
+        sub_path = _join(path, part)
+        fields = spec.fields if isinstance(spec, Section) else {}
+        if part not in node and part not in fields:
+            raise _Invalid(sub_path, "does not exist", f"valid keys: {', '.join(fields) or ', '.join(node)}")
+        f = fields.get(part)
+        if last:
+            node[part] = value
+        else:
+            if node.get(part) is None:
+                if f is None or not isinstance(f.kind, Section):
+                    raise _Invalid(sub_path, "does not exist", "expected an existing key path")
+                node[part] = {}
+            node, path = node[part], sub_path
+        spec = f.kind if f is not None else None
+
+
+# --------------------------------------------------------------------------------------------------------- loading
+def scene_from_dict(data: dict, source: str = "<dict>", overrides=()) -> SceneFile:
+    """Validate a scene dict (after applying `overrides`) and build its `Scene`.
+
+    **Arguments:** `data`: the parsed JSON; `source`: the file name used in error messages; `overrides`: strings
+    `"key.path=value"` (see `apply_overrides`).
+
+    **Returns:** a `SceneFile`. **Raises:** `SceneError` before any JAX object is built if anything is invalid.
+    """
+    data = apply_overrides(data, overrides, source)
+    try:
+        valid = _check(data, SCHEMA, "")
+    except _Invalid as e:
+        raise SceneError(f"{_base(source)}: {e.path or '<top level>'}: {e.problem}; {e.valid}") from None
+    stem = os.path.splitext(_base(source))[0]
+    name = valid["name"] if valid["name"] is not None else stem
+    valid["name"] = name
+    scene = _build_scene(valid)
+    return SceneFile(scene=scene, spp=valid["integrator"]["spp"], path=source, data=valid, name=name)
+
+
+def load_scene(path, overrides=()) -> SceneFile:
+    """Read, override, validate and build a JSON scene file (format: `notes/ARCHITECTURE.md`).
+
+    **Arguments:** `path`: the `.json` file; `overrides`: strings `"key.path=value"`, e.g. `"medium.sigma_t=0.8"`,
+    `"lights.0.intensity=50"`, `"camera.width=32"` (a scalar sets all channels of an RGB value).
+
+    **Returns:** a `SceneFile(scene, spp, path, data, name)`. **Raises:** `SceneError` (a `ValueError`) naming the
+    file, the key path and the valid range; also for a missing or unreadable file and for invalid JSON.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read()
+    except FileNotFoundError:
+        raise SceneError(f"{path}: scene file not found") from None
+    except OSError as e:
+        raise SceneError(f"{path}: cannot read scene file: {e.strerror or e}") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise SceneError(f"{_base(path)}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    return scene_from_dict(data, source=path, overrides=overrides)
+
+
+def _build(value, spec):
+    """Turn a validated value into Modules, bottom-up, with each section's `build`."""
+    if isinstance(spec, ListOf):
+        return tuple(_build(v, spec.item) for v in value)
+    if isinstance(spec, Typed):
+        return _build({k: v for k, v in value.items() if k != "type"}, spec.choices[value["type"]])
+    if isinstance(spec, Section):
+        built = {k: (None if value[k] is None else _build(value[k], f.kind)) for k, f in spec.fields.items()}
+        return spec.build(**built) if spec.build is not None else built
+    return value
+
+
+def _build_scene(valid: dict):
+    from ._scene import Scene
+
+    parts = _build(valid, SCHEMA)
+    return Scene(
+        camera=parts["camera"],
+        shapes=parts["shapes"],
+        lights=parts["lights"],
+        medium=parts["medium"],
+        max_depth=valid["integrator"]["max_depth"],
+    )
+
+
+# --------------------------------------------------------------------------------------------------------- helpers
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _base(source: str) -> str:
+    return os.path.basename(source) if source and not source.startswith("<") else source
+
+
+def _keys(spec: Section) -> str:
+    return ", ".join(spec.fields)
+
+
+def _describe(value) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return f"boolean {str(value).lower()}"
+    if isinstance(value, str):
+        return f"string {value!r}"
+    if isinstance(value, list):
+        return f"a list of {len(value)}"
+    if isinstance(value, dict):
+        return "an object"
+    return f"{type(value).__name__} {value!r}"
+
+
+def _fmt(x) -> str:
+    if isinstance(x, list):
+        return "[" + ", ".join(_fmt(v) for v in x) + "]"
+    if isinstance(x, float) and x.is_integer():
+        return str(int(x))
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def _dot(a, b) -> float:
+    return sum(x * y for x, y in zip(a, b))
+
+
+def _norm(a) -> float:
+    return math.sqrt(_dot(a, a))
+
+
+def _cross(a, b) -> list:
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
