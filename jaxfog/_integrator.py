@@ -41,10 +41,16 @@ class Proposal(NamedTuple):
 
 
 class Options(NamedTuple):
-    """Static integrator options (hashable): estimator name, equiangular sampling on/off."""
+    """Static integrator options (hashable): estimator name; equiangular sampling on/off; `light_lobe`: probability
+    of sampling a scattering direction from the light-angle lobe instead of the phase function / cosine lobe
+    (0 disables it; never used by the "reparam" estimator, whose directions must move with g); `distance_mix`:
+    probability of placing the path's medium vertex by equiangular sampling instead of free flight (needs
+    `equiangular`; not used by "reparam")."""
 
     estimator: str = "detached"
     equiangular: bool = True
+    light_lobe: float = 0.3
+    distance_mix: float = 0.3
 
 
 class PathState(NamedTuple):
@@ -60,7 +66,7 @@ class PathState(NamedTuple):
 
 def n_dims(scene: Scene) -> int:
     """Uniform random numbers one bounce consumes."""
-    return 4 + 2 * len(scene.area_lights) + len(scene.delta_lights)
+    return 8 + 2 * len(scene.area_lights) + len(scene.delta_lights)
 
 
 def n_iterations(scene: Scene) -> int:
@@ -211,6 +217,21 @@ def equiangular_pdf(t, delta, D, th_a, th_b, valid):
     return jnp.where(inside, D / (jnp.where(valid, th_b - th_a, 1.0) * (D * D + r * r)), 0.0)
 
 
+def light_lobe_sample(u, x, light_pos):
+    """Direction from `x` uniform in the angle alpha to the direction toward `light_pos` (alpha = pi u[0])."""
+    a = safe_normalize(light_pos - x)
+    half = 0.5 * PI * u[0]
+    return direction_from_cos(2.0 * jnp.sin(half) ** 2, 2.0 * jnp.cos(half) ** 2, 2.0 * PI * u[1], a)
+
+
+def light_lobe_pdf(w, x, light_pos):
+    """Solid-angle pdf of `light_lobe_sample`: `1 / (2 pi^2 sin alpha)`. It cancels the `1/D` of the light
+    scattered along a line passing at distance D from a point light (estimators.md)."""
+    a = safe_normalize(light_pos - x)
+    sin_a = safe_sqrt(jnp.sum(cross(w, a) ** 2))
+    return safe_div(1.0, 2.0 * PI * PI * sin_a)
+
+
 # ------------------------------------------------------------------------------------------------------- the tracer
 def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d, U) -> Float[Array, "3"]:
     """Radiance (RGB) arriving at the camera along the ray `(o, d)`; `U` holds `(n_iterations, n_dims)` uniforms."""
@@ -223,6 +244,11 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
     n_area = len(area_lights)
     use_equiangular = options.equiangular and has_medium and bool(delta_lights)
     reparam = options.estimator == "reparam"
+    lam = float(options.light_lobe) if (delta_lights and not reparam) else 0.0
+    n_delta = len(delta_lights)
+    lam_d = float(options.distance_mix) if (use_equiangular and not reparam) else 0.0
+    if lam > 0:
+        light_pos = jnp.stack([lt.position for lt in delta_lights])
     max_depth = scene.max_depth
     if has_medium:
         sigma_t, sigma_s, g = med.sigma_t, med.sigma_s, med.g
@@ -248,12 +274,19 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
                 c = c * jnp.where(is_med, safe_div(ff_pdf, ff_pdf + p_eq), 1.0)
             L = L + jnp.where(ok & vis, c, 0.0)
         for j, light in enumerate(area_lights):
-            wl, dist, Le, pdf = area_sample(light, p, U_b[4 + 2 * j : 6 + 2 * j])
+            wl, dist, Le, pdf = area_sample(light, p, U_b[8 + 2 * j : 10 + 2 * j])
             vis = ~occluded(pk, shadow_o, wl, dist)
             w = power_heuristic(pdf, dir_pdf(wl))
             c = beta * response(wl) * Le * transmit(dist) * safe_div(w, pdf)
             L = L + jnp.where(ok & vis & (pdf > 0), c, 0.0)
         return L
+
+    def lobe_sample(x, U_b):
+        i = jnp.minimum((U_b[5] * len(delta_lights)).astype(jnp.int32), len(delta_lights) - 1)
+        return light_lobe_sample(U_b[1:3], x, light_pos[i])
+
+    def lobe_pdf(w, x):
+        return sum(light_lobe_pdf(w, x, light_pos[i]) for i in range(len(delta_lights))) / len(delta_lights)
 
     def body(state: PathState, xs):
         b, U_b = xs
@@ -262,44 +295,72 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
         hit = jnp.isfinite(s_hit)
         L = state.L
 
-        # ---- free flight: medium branch or surface branch
+        # ---- equiangular set-up of the segment toward each delta light (distances do not depend on the medium)
         if has_medium:
             active = state.in_medium
             s = jnp.minimum(s_hit, med.extent)
-            q, log1mq = M.branch_probability(prop.sigma_hat, s)
+        eq_setups, eq_t = [], []
+        if use_equiangular:
+            for i, light in enumerate(delta_lights):
+                setup = equiangular_setup(light, state.o, state.d, s)
+                delta, D, th_a, th_b, valid = setup
+                th = th_a + U_b[8 + 2 * n_area + i] * (th_b - th_a)
+                te = jnp.clip(jnp.where(valid, delta + D * jnp.tan(th), 0.0), 0.0, s)
+                eq_setups.append(setup)
+                eq_t.append(te)
+
+        # ---- free flight: medium branch (vertex at t) or surface branch
+        if has_medium:
+            q, log1mq = M.branch_probability(prop.sigma_hat, s, jnp.where(hit, M.Q_MAX_SURFACE, 1.0))
             q = jnp.where(active, q, 0.0)
             u = U_b[0]
             is_med = active & (u < q)
             x = safe_div(u, q)
             t = M.sample_truncated_exponential(x, prop.sigma_hat, s)
+            if lam_d > 0:
+                # the vertex distance is drawn from a mixture: truncated exponential, or equiangular toward a light
+                # (the path then continues from near the light often enough to make the 1/r light there cheap)
+                i_l = jnp.minimum((U_b[7] * n_delta).astype(jnp.int32), n_delta - 1)
+                te_i = jnp.stack(eq_t)[i_l]
+                valid_i = jnp.stack([st[4] for st in eq_setups])[i_l]
+                t = jnp.where((U_b[6] < lam_d) & valid_i, te_i, t)
             t = jnp.where(is_med, t, 0.0)
-            w_med = M.medium_weight(sigma_t, sigma_s, prop.sigma_hat, t, s, jnp.where(is_med, q, 1.0))
+
+            def vertex_pdf(tt):
+                """Density of the medium vertex at distance tt on this segment (branch probability included)."""
+                p_exp = M.medium_pdf(tt, prop.sigma_hat, s, q)
+                if lam_d == 0:
+                    return p_exp
+                p_eq = sum(jnp.where(st[4], equiangular_pdf(tt, *st), M.medium_pdf(tt, prop.sigma_hat, s, 1.0))
+                           for st in eq_setups) / n_delta
+                return (1.0 - lam_d) * p_exp + lam_d * q * p_eq
+
+            if lam_d > 0:
+                # sigma_s exp(-sigma_t t) / vertex_pdf(t), with exp(sigma_t t) clamped where the weight is ~0 anyway
+                p_v = vertex_pdf(t)
+                w_med = sigma_s * safe_div(jnp.exp(-sigma_t * t), p_v)
+            else:
+                w_med = M.medium_weight(sigma_t, sigma_s, prop.sigma_hat, t, s, jnp.where(is_med, q, 1.0))
             w_surf = jnp.where(active, M.surface_weight(sigma_t, s, log1mq), 1.0)
-            ff_pdf = M.medium_pdf(t, prop.sigma_hat, s, q)
+            ff_pdf = vertex_pdf(t)
         else:
             is_med = jnp.bool_(False)
             w_surf = jnp.ones(3, jnp.float32)
 
-        # ---- direct light along the segment: equiangular samples, MIS with the free-flight vertex
-        eq_setups = None
+        # ---- direct light along the segment: equiangular samples, MIS (balance) with the path's medium vertex
         if use_equiangular:
-            eq_setups = []
             seg_ok = nee_ok & active
             for i, light in enumerate(delta_lights):
-                setup = equiangular_setup(light, state.o, state.d, s)
-                delta, D, th_a, th_b, valid = setup
-                th = th_a + U_b[4 + 2 * n_area + i] * (th_b - th_a)
-                te = delta + D * jnp.tan(th)
-                te = jnp.clip(jnp.where(valid, te, 0.0), 0.0, s)
+                setup, te = eq_setups[i], eq_t[i]
+                valid = setup[4]
                 p_eq = equiangular_pdf(te, *setup)
                 xe = state.o + te * state.d
                 wl, dist, E = delta_incident(light, xe)
                 vis = ~occluded(pk, xe, wl, dist)
                 f = sigma_s * jnp.exp(-sigma_t * te) * hg_pdf(one_minus_cos_between(state.d, wl), g)
-                p_ff = M.medium_pdf(te, prop.sigma_hat, s, q)
-                c = state.beta * f * E * transmit(dist) * safe_div(1.0, p_eq + p_ff)
+                c = state.beta * f * E * transmit(dist) * safe_div(1.0, p_eq + vertex_pdf(te))
                 L = L + jnp.where(seg_ok & valid & vis & (p_eq > 0), c, 0.0)
-                eq_setups.append(setup)
+        eq_setups = eq_setups or None
 
         new = {}
         # ---- medium vertex
@@ -312,6 +373,11 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             pdf_m = hg_pdf(omc, prop.g_hat)
             if reparam:  # the direction carries d/dg; its weight p_g / p_g is 1
                 beta_m_next = beta_m
+            elif lam > 0:
+                wo_m = jnp.where(U_b[4] < lam, lobe_sample(p_m, U_b), wo_m)
+                omc = one_minus_cos_between(state.d, wo_m)
+                pdf_m = (1.0 - lam) * hg_pdf(omc, prop.g_hat) + lam * lobe_pdf(wo_m, p_m)
+                beta_m_next = beta_m * hg_pdf(omc, g) / pdf_m
             else:
                 beta_m_next = beta_m * hg_pdf(omc, g) / pdf_m
             new["med"] = (p_m, wo_m, beta_m_next, pdf_m)
@@ -344,8 +410,15 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
 
             surf_nee_ok = surf & is_diff & front
             wo_d, pdf_d = cosine_sample(U_b[1:3], n)
+            if lam > 0:
+                wo_d = jnp.where(U_b[4] < lam, lobe_sample(p_s, U_b), wo_d)
+                cos_o = jnp.maximum(dot(n, wo_d), 0.0)
+                pdf_d = (1.0 - lam) * cos_o * INV_PI + lam * lobe_pdf(wo_d, p_s)
+                beta_d = beta_s * R * safe_div(cos_o * INV_PI, pdf_d)
+            else:
+                beta_d = beta_s * R
             wo_s = jnp.where(is_diff, wo_d, wo_s)
-            beta_s_next = jnp.where(is_diff, beta_s * R, beta_s_next)
+            beta_s_next = jnp.where(is_diff, beta_d, beta_s_next)
             spec_s = jnp.where(is_diff, False, spec_s)
             pdf_s = jnp.where(is_diff, pdf_d, pdf_s)
             alive_s = alive_s & ~(is_diff & ~front)
@@ -386,9 +459,13 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
 
             def dir_pdf(wl):
                 cos_pdf = jnp.maximum(dot(n, wl), 0.0) * INV_PI
-                if not has_medium:
-                    return cos_pdf
-                return jnp.where(med_v, hg_pdf(one_minus_cos_between(state.d, wl), prop.g_hat), cos_pdf)
+                if has_medium:
+                    pdf = jnp.where(med_v, hg_pdf(one_minus_cos_between(state.d, wl), prop.g_hat), cos_pdf)
+                else:
+                    pdf = cos_pdf
+                if lam > 0:
+                    pdf = (1.0 - lam) * pdf + lam * lobe_pdf(wl, p_v)
+                return pdf
 
             eq_mis = (eq_setups, t, ff_pdf, med_v) if use_equiangular else None
             L = L + nee(p_v, shadow_o, response, dir_pdf, beta_v, ok_v, U_b, eq_mis=eq_mis)

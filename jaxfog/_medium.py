@@ -29,6 +29,9 @@ from ._phase import HenyeyGreenstein
 Q_MIN = 0.05
 """Smallest probability of choosing the medium branch on a segment (no derivative; a variance/cost trade-off)."""
 
+Q_MAX_SURFACE = 0.75
+"""Largest probability of the medium branch on a segment that ends on a surface (variance trade-off, no bias)."""
+
 SIGMA_HAT_MIN = 1e-6
 """Smallest sampling extinction (1/scene unit); below it the truncated exponential is uniform on [0, s] anyway."""
 
@@ -72,17 +75,22 @@ def sampling_extinction(sigma_t: Float[Array, "3"]) -> Float[Array, ""]:
     return jnp.maximum(jnp.min(sigma_t), SIGMA_HAT_MIN)
 
 
-def branch_probability(sh: Float[Array, ""], s: Float[Array, ""]) -> tuple[Float[Array, ""], Float[Array, ""]]:
+def branch_probability(
+    sh: Float[Array, ""], s: Float[Array, ""], q_max: float | Float[Array, ""] = 1.0
+) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """Probability `q` of the medium branch on a segment of finite length `s`, and `log(1 - q)`; never differentiated.
 
-    `q = max(1 - exp(-sh s), Q_MIN)`; `log(1 - q)` is exact (`-sh s`) where the floor is not active, so surface weights
-    `exp(-sigma_t s) / (1 - q)` never underflow to 0/0 in deep fog.
+    `q = clip(1 - exp(-sh s), Q_MIN, q_max)`. The integrator passes `q_max = Q_MAX_SURFACE` when the segment ends
+    on a surface, so that a surface behind optically thick fog is still reached by a fixed share of the paths (with
+    weight `exp(-sigma_t s) / (1 - q) < 1`) instead of by a rare, heavy one. `log(1 - q)` is exact (`-sh s`) where
+    no clamp is active, so surface weights `exp(-sigma_t s) / (1 - q)` never underflow to 0/0 in deep fog.
     """
     sh = jax.lax.stop_gradient(sh)
     m = one_minus_exp_neg(sh * s)
     floored = m < Q_MIN
-    q = jnp.where(floored, Q_MIN, m)
-    log_one_minus_q = jnp.where(floored, jnp.log1p(-Q_MIN), -sh * s)
+    capped = m > q_max
+    q = jnp.where(floored, Q_MIN, jnp.where(capped, q_max, m))
+    log_one_minus_q = jnp.where(floored, jnp.log1p(-Q_MIN), jnp.where(capped, jnp.log1p(-q_max), -sh * s))
     return q, log_one_minus_q
 
 
