@@ -315,7 +315,7 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             q = jnp.where(active, q, 0.0)
             u = U_b[0]
             is_med = active & (u < q)
-            x = safe_div(u, q)
+            x = jnp.where(is_med, safe_div(u, q), 0.0)  # double where: x >= 1 off the medium branch gives log(<0)
             t = M.sample_truncated_exponential(x, prop.sigma_hat, s)
             if lam_d > 0:
                 # the vertex distance is drawn from a mixture: truncated exponential, or equiangular toward a light
