@@ -1,0 +1,297 @@
+"""The fit: optimistix least squares on rendered-minus-target residuals, with the "proposal" estimator.
+
+Why "proposal" (estimators.md): for a fixed key and a fixed reference `theta_ref`, the rendered image is a smooth,
+deterministic function of the parameters that is an unbiased estimate at every value, which is what
+Levenberg–Marquardt and BFGS assume. Its weights `f(theta) / p(theta_ref)` have finite variance only while
+`sigma_t > sigma_ref / 2`, so between solves `theta_ref` is re-centred on the estimate and a fresh key is drawn,
+until the estimate stops moving by more than its own noise. Then a few more solves with fresh keys give the spread
+that the final uncertainty reports, beside the one from the Jacobian.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+import jaxfog
+
+from .params import FitError, SPECS, apply, from_unconstrained, jacobian_to_params, to_unconstrained
+
+
+class View(NamedTuple):
+    """One target image of the medium: the scene (at the fit resolution), the target (same size), a name."""
+
+    scene: jaxfog.Scene
+    target: np.ndarray
+    name: str
+    target_spp: int | None = None
+
+
+def pool(img: np.ndarray, f: int) -> np.ndarray:
+    """Box-downsample `(H, W, 3)` by an integer factor (exact: a pixel is the mean of its square)."""
+    if f == 1:
+        return img
+    H, W, C = img.shape
+    return img.reshape(H // f, f, W // f, f, C).mean(axis=(1, 3))
+
+
+def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int = 1, target_spp=None) -> View:
+    """Check the target against the scene's camera and bring both to the fit resolution."""
+    cam = scene.camera
+    target = np.asarray(target, np.float32)
+    if target.ndim != 3 or target.shape[2] != 3:
+        raise FitError(f"{name}: target must be an RGB image (H, W, 3), got shape {target.shape}")
+    if target.shape[:2] != (cam.height, cam.width):
+        raise FitError(
+            f"{name}: target is {target.shape[1]}x{target.shape[0]} px but the scene's camera is "
+            f"{cam.width}x{cam.height} px"
+        )
+    if not np.all(np.isfinite(target)):
+        raise FitError(f"{name}: target has non-finite pixels")
+    if downscale < 1 or cam.width % downscale or cam.height % downscale:
+        raise FitError(f"downscale {downscale} must be >= 1 and divide the image size {cam.width}x{cam.height}")
+    import equinox as eqx
+
+    small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov,
+                          width=cam.width // downscale, height=cam.height // downscale)
+    scene = eqx.tree_at(lambda s: s.camera, scene, small)
+    return View(scene, pool(target, downscale), name, target_spp)
+
+
+@dataclass
+class FitConfig:
+    """How to fit. `spp`: samples per pixel of each render inside the solver; `solver`: "lm" (Levenberg–Marquardt,
+    forward-mode Jacobian) or "bfgs" (reverse-mode gradient); `max_rounds`: re-centring rounds at most; `repeats`:
+    extra solves with fresh keys for the spread; `rtol`/`atol`: solver tolerances on the unconstrained parameters;
+    `max_steps` per solve; `chi2_max`: a fit whose residual exceeds this multiple of its expected noise is reported
+    as not explaining the target."""
+
+    spp: int = 8
+    seed: int = 0
+    solver: str = "lm"
+    max_rounds: int = 5
+    repeats: int = 2
+    rtol: float = 1e-3
+    atol: float = 1e-5
+    max_steps: int = 40
+    chi2_max: float = 3.0
+
+
+@dataclass
+class FitResult:
+    names: list
+    params: dict
+    init: dict
+    success: bool
+    messages: list
+    uncertainty: dict
+    iterations: int
+    rounds: int
+    wall_s: float
+    history: list = field(default_factory=list)
+    chi2: float = float("nan")
+    correlation: list | None = None
+
+    def to_json(self) -> dict:
+        return {
+            "params": self.params, "init": self.init, "success": self.success, "messages": self.messages,
+            "uncertainty": self.uncertainty, "iterations": self.iterations, "rounds": self.rounds,
+            "wall_s": self.wall_s, "chi2": self.chi2, "correlation": self.correlation,
+            "history": self.history,
+        }
+
+
+def _solver(cfg: FitConfig):
+    if cfg.solver == "lm":
+        return optx.LevenbergMarquardt(rtol=cfg.rtol, atol=cfg.atol)
+    if cfg.solver == "bfgs":
+        return optx.BFGS(rtol=cfg.rtol, atol=cfg.atol)
+    raise FitError(f"--solver must be lm or bfgs, got {cfg.solver!r}")
+
+
+class Problem:
+    """Residuals of all views as one function of the unconstrained parameters `y`; built once per fit so that
+    optimistix compiles it once (the key and the reference medium are arguments, not closure constants)."""
+
+    def __init__(self, views: list[View], names: list[str], cfg: FitConfig, on_eval: Callable | None = None):
+        self.views, self.names, self.cfg = views, names, cfg
+        self.scales = [float(max(np.mean(v.target), 1e-8)) for v in views]
+        self.n = sum(v.target.size for v in views)
+        self.targets = [jnp.asarray(v.target) for v in views]
+        self.on_eval = on_eval
+
+    def images(self, y, key, ref, estimator="proposal", spp=None):
+        vals = from_unconstrained(self.names, y)
+        out = []
+        for i, v in enumerate(self.views):
+            scene = apply(v.scene, vals)
+            out.append(jaxfog.render(scene, jax.random.fold_in(key, i), spp or self.cfg.spp,
+                                     estimator=estimator, proposal=ref))
+        return out
+
+    def residuals(self, y, args):
+        key, ref = args
+        imgs = self.images(y, key, ref)
+        r = jnp.concatenate([((img - t) / s).ravel() for img, t, s in zip(imgs, self.targets, self.scales)])
+        r = r / math.sqrt(self.n)
+        if self.on_eval is not None:
+            jax.debug.callback(self.on_eval, y, jnp.sum(r * r))
+        return r
+
+
+def _reference(views: list[View], values: dict) -> jaxfog.HomogeneousMedium:
+    """The proposal medium at the current estimate (parameters not being fitted keep the scene's values)."""
+    med = apply(views[0].scene, values).medium
+    return jax.lax.stop_gradient(med)
+
+
+def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, log: Callable = print) -> FitResult:
+    """Fit `names` starting from `init` (a value for each name) to all `views` jointly. Never raises on a failed
+    fit: the result says so (`success`, `messages`)."""
+    if not views:
+        raise FitError("no targets given")
+    for v in views:
+        if v.scene.medium is None and set(names) & {"sigma_t", "g", "albedo"}:
+            raise FitError(f"{v.name}: the scene has no medium to fit")
+    t_start = time.perf_counter()
+    history: list[dict] = []
+    state = {"round": 0, "evals": 0}
+
+    def on_eval(y, loss):
+        state["evals"] += 1
+        vals = {n: float(SPECS[n].from_u(jnp.asarray(y[i]))) for i, n in enumerate(names)}
+        history.append({"round": state["round"], "eval": state["evals"], "loss": float(loss), **vals})
+        log(f"  round {state['round']:d} eval {state['evals']:3d}  loss {float(loss):.6e}  "
+            + "  ".join(f"{n} {vals[n]:.5f}" for n in names))
+
+    problem = Problem(views, names, cfg, on_eval)
+    solver = _solver(cfg)
+    base_key = jax.random.key(cfg.seed)
+    y = to_unconstrained(names, init)
+    messages: list[str] = []
+    iterations = 0
+    solve_ok = True
+    estimates: list[np.ndarray] = []
+
+    def solve(y0, round_id):
+        nonlocal iterations, solve_ok
+        state["round"] = round_id
+        key = jax.random.fold_in(base_key, round_id)
+        ref = _reference(views, from_unconstrained(names, y0))
+        sol = optx.least_squares(problem.residuals, solver, y0, args=(key, ref), throw=False,
+                                 max_steps=cfg.max_steps)
+        steps = int(sol.stats["num_steps"])
+        iterations += steps
+        ok = sol.result == optx.RESULTS.successful
+        if not ok:
+            solve_ok = False
+            messages.append(f"round {round_id}: solver did not converge ({optx.RESULTS[sol.result]}) in {steps} steps")
+        return sol.value, (key, ref)
+
+    def jacobian_se(y_hat, args):
+        r = problem.residuals(y_hat, args)
+        J = jax.jacfwd(problem.residuals)(y_hat, args)
+        J, r = np.asarray(J, np.float64), np.asarray(r, np.float64)
+        dof = max(r.size - len(names), 1)
+        s2 = float(r @ r) / dof
+        JtJ = J.T @ J
+        try:
+            cov_y = s2 * np.linalg.inv(JtJ)
+        except np.linalg.LinAlgError:
+            cov_y = np.full((len(names), len(names)), np.inf)
+        d = jacobian_to_params(names, y_hat)
+        cov = cov_y * np.outer(d, d)
+        return cov
+
+    # ---- re-centring rounds
+    prev = None
+    rounds = 0
+    cov = None
+    for r in range(cfg.max_rounds):
+        rounds += 1
+        y, args = solve(y, r)
+        theta = np.asarray([float(SPECS[n].from_u(y[i])) for i, n in enumerate(names)])
+        cov = jacobian_se(y, args)
+        se = np.sqrt(np.abs(np.diag(cov)))
+        log(f"round {r}: " + "  ".join(f"{n} {theta[i]:.5f} ± {se[i]:.5f}" for i, n in enumerate(names)))
+        if prev is not None and np.all(np.abs(theta - prev) <= 2.0 * se):
+            estimates.append(theta)
+            break
+        prev = theta
+    else:
+        estimates.append(theta)
+        messages.append(f"estimate still moving after {cfg.max_rounds} re-centring rounds")
+        solve_ok = False
+
+    # ---- repeats with fresh keys, for the spread
+    for k in range(cfg.repeats):
+        y_k, _ = solve(y, 1000 + k)
+        estimates.append(np.asarray([float(SPECS[n].from_u(y_k[i])) for i, n in enumerate(names)]))
+    est = np.mean(estimates, axis=0)
+    spread = np.std(estimates, axis=0, ddof=1) if len(estimates) > 1 else np.full(len(names), np.nan)
+    se_jac = np.sqrt(np.abs(np.diag(cov)))
+    y_hat = to_unconstrained(names, {n: est[i] for i, n in enumerate(names)})
+
+    # ---- does the model explain the targets? residual vs the noise expected from two independent renders
+    k1, k2 = jax.random.split(jax.random.fold_in(base_key, 7777))
+    ref = _reference(views, from_unconstrained(names, y_hat))
+    spp_check = 2 * cfg.spp
+    a = problem.images(y_hat, k1, ref, estimator="detached", spp=spp_check)
+    b = problem.images(y_hat, k2, ref, estimator="detached", spp=spp_check)
+    chi2s = []
+    for v, ia, ib, s in zip(views, a, b, problem.scales):
+        ia, ib = pool(np.asarray(ia), _block(v)), pool(np.asarray(ib), _block(v))
+        t = pool(v.target, _block(v))
+        var_render = np.mean((ia - ib) ** 2) / 2.0
+        var_target = var_render * (spp_check / v.target_spp) if v.target_spp else 0.0
+        chi2s.append(float(np.mean((0.5 * (ia + ib) - t) ** 2) / (var_render / 2.0 + var_target + 1e-30)))
+    chi2 = float(max(chi2s))
+    explained = chi2 <= cfg.chi2_max
+    if not explained:
+        messages.append(
+            f"the model does not explain the target(s): residual is {chi2:.1f}x the expected noise "
+            f"(limit {cfg.chi2_max}); per view: " + ", ".join(f"{v.name} {c:.1f}" for v, c in zip(views, chi2s))
+        )
+    at_bound = []
+    for i, n in enumerate(names):
+        if abs(float(y_hat[i])) > 6.0:  # e.g. |g| > 0.99999, sigma_t beyond e^±6 of 1
+            at_bound.append(n)
+    if at_bound:
+        messages.append(f"parameters ran to the edge of their range: {at_bound}")
+
+    success = bool(solve_ok and explained and not at_bound)
+    corr = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
+    return FitResult(
+        names=names,
+        params={n: float(est[i]) for i, n in enumerate(names)},
+        init={n: float(init[n]) for n in names},
+        success=success,
+        messages=messages,
+        uncertainty={
+            n: {"se_jacobian": float(se_jac[i]), "sd_repeats": float(spread[i]),
+                "se": float(np.nanmax([se_jac[i], spread[i] / math.sqrt(len(estimates))]))}
+            for i, n in enumerate(names)
+        },
+        iterations=iterations,
+        rounds=rounds,
+        wall_s=time.perf_counter() - t_start,
+        history=history,
+        chi2=chi2,
+        correlation=corr.tolist(),
+    )
+
+
+def _block(v: View) -> int:
+    """Block size for the noise check: 4 px where the image allows (pooling keeps a model mismatch, averages noise)."""
+    H, W = v.target.shape[:2]
+    for b in (4, 2, 1):
+        if H % b == 0 and W % b == 0:
+            return b
+    return 1
