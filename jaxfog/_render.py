@@ -69,6 +69,8 @@ def render(
     estimator: str = "detached",
     proposal=None,
     equiangular: bool = True,
+    light_lobe: float = 0.3,
+    distance_mix: float = 0.3,
     batch_paths: int = DEFAULT_BATCH_PATHS,
     progress: Callable[[int, int], None] | None = None,
 ) -> Float[Array, "H W 3"]:
@@ -81,6 +83,9 @@ def render(
       from the fixed reference `proposal`, a `HomogeneousMedium`; a smooth deterministic function of the parameters
       for a fixed key). See `estimators.md`.
     - `equiangular`: equiangular sampling toward point and spot lights, MIS-combined with free flight.
+    - `light_lobe`: probability (in [0, 1)) of sampling scattering directions uniformly in the angle to a point/spot
+      light instead of from the phase function / cosine lobe; `distance_mix`: probability of placing a path's medium
+      vertex by equiangular sampling instead of free flight (needs `equiangular`). Neither is used by "reparam".
     - `batch_paths`: paths per compiled call (memory bound); `progress(done_spp, spp)` is called after each batch.
 
     Differentiable with `jax.grad`, `jax.jvp`, `jax.jacfwd` with respect to the scene's array fields.
@@ -89,7 +94,11 @@ def render(
         raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
     if not isinstance(spp, int) or spp < 1:
         raise ValueError(f"spp must be a positive integer, got {spp!r}")
-    options = Options(estimator=estimator, equiangular=bool(equiangular))
+    for name, v in (("light_lobe", light_lobe), ("distance_mix", distance_mix)):
+        if not 0.0 <= v < 1.0:
+            raise ValueError(f"{name} must be in [0, 1), got {v!r}")
+    options = Options(estimator=estimator, equiangular=bool(equiangular), light_lobe=float(light_lobe),
+                      distance_mix=float(distance_mix))
     per = layers_per_batch(scene, spp, batch_paths)
     n_batches = math.ceil(spp / per)
     H, W = scene.camera.height, scene.camera.width
