@@ -56,7 +56,7 @@ class PhaseSample(eqx.Module):
 class HenyeyGreenstein(eqx.Module):
     """Henyey–Greenstein phase function with asymmetry `g` in (-1, 1) (traced; g > 0 forward)."""
 
-    g: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    g: Float[Array, ""] = eqx.field(converter=lambda x: jnp.asarray(x, dtype=jnp.float32))  # one dtype, never weak
 
     def sample(self, d: Float[Array, "3"], u: Float[Array, "2"]) -> PhaseSample:
         """Sample a new camera-path direction around the current direction `d`; pdf is the HG value."""

@@ -151,7 +151,8 @@ def test_medium_pdf_is_the_sampling_density():
         assert float(np.sum(pdf * 0.5 * s * w)) == pytest.approx(float(q), rel=1e-5)
         wm = np.asarray(jax.vmap(lambda tt: M.medium_weight(sigma_t, sigma_s, f32(sh), tt, f32(s), q))(
             jnp.asarray(nodes, f32)), np.float64)
-        expected = np.asarray(sigma_s, np.float64) * np.exp(-np.outer(nodes, np.asarray(sigma_t, np.float64))) / pdf[:, None]
+        s64, t64 = np.asarray(sigma_s, np.float64), np.asarray(sigma_t, np.float64)
+        expected = s64 * np.exp(-np.outer(nodes, t64)) / pdf[:, None]
         np.testing.assert_allclose(wm, expected, rtol=1e-4)
 
 

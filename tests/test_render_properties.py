@@ -1,0 +1,169 @@
+"""Structural properties of `jaxfog.render`: determinism, batch-size independence, no recompilation for new physical
+values, and "model only what a scene needs" (the traced program of a simpler scene is a strict subset)."""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.monitoring
+import numpy as np
+import pytest
+from jax.extend import core as jex_core
+
+import jaxfog as jf
+
+from conftest import FLOOR_CAMERA, make_floor  # tests/ is on sys.path (rootdir conftest)
+
+def fog_scene(sigma_t=(0.4, 0.5, 0.6), albedo=0.8, g=0.3, intensity=5.0):
+    """Floor + point light in RGB fog, max_depth 3: free flight, equiangular sampling, NEE, phase and BRDF sampling.
+
+    The same structure, resolution and batching as `test_render_analytic.test_absorbing_fog_is_beer_lambert`, so
+    in a full run this file compiles only the padded-batch variant."""
+    return jf.Scene(
+        camera=FLOOR_CAMERA.build(),
+        shapes=(make_floor(),),
+        lights=(jf.PointLight((0.8, 1.5, 0.4), intensity),),
+        medium=jf.HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=jf.HenyeyGreenstein(g)),
+        max_depth=3,
+    )
+
+
+N_PIX = FLOOR_CAMERA.width * FLOOR_CAMERA.height
+SPP = 16
+BATCH = N_PIX * SPP  # one compiled call for all SPP layers
+
+
+# ------------------------------------------------------------------------------------------------ determinism
+def test_same_key_same_image_different_key_different_image():
+    scene = fog_scene()
+    a = np.asarray(jf.render(scene, jax.random.key(3), SPP, batch_paths=BATCH))
+    b = np.asarray(jf.render(scene, jax.random.key(3), SPP, batch_paths=BATCH))
+    c = np.asarray(jf.render(scene, jax.random.key(4), SPP, batch_paths=BATCH))
+    assert a.shape == (FLOOR_CAMERA.height, FLOOR_CAMERA.width, 3) and a.dtype == np.float32
+    assert np.all(np.isfinite(a)) and a.max() > 0
+    np.testing.assert_array_equal(a, b)
+    assert np.mean(a != c) > 0.5  # most pixels differ with another key
+
+
+def test_image_does_not_depend_on_batch_paths():
+    """Sample k of every pixel uses fold_in(key, k), whatever the batching: 16 spp in one batch, or in batches of 6
+    layers (the last one padded), give the same image up to float32 summation order (1e-5 relative)."""
+    scene = fog_scene()
+    key = jax.random.key(5)
+    one = np.asarray(jf.render(scene, key, SPP, batch_paths=BATCH))
+    done = []
+    padded = np.asarray(jf.render(scene, key, SPP, batch_paths=N_PIX * 6, progress=lambda d, n: done.append((d, n))))
+    assert done == [(6, SPP), (12, SPP), (16, SPP)]
+    np.testing.assert_allclose(padded, one, rtol=1e-5, atol=1e-6 * float(one.max()))
+    # and they are not trivially equal: a different spp gives a different image
+    assert not np.allclose(np.asarray(jf.render(scene, key, SPP - 1, batch_paths=N_PIX * 6)), one, rtol=1e-3)
+
+
+# ------------------------------------------------------------------------------------------------ no recompilation
+class CompileCounter:
+    """Counts XLA backend compilations (jax.monitoring duration events) while active."""
+
+    EVENT = "/jax/core/compile/backend_compile_duration"
+
+    def __init__(self):
+        self.count = 0
+        self.active = False
+        jax.monitoring.register_event_duration_secs_listener(self._listener)
+
+    def _listener(self, event, duration, **kwargs):
+        if self.active and event == self.EVENT:
+            self.count += 1
+
+    def __enter__(self):
+        self.count, self.active = 0, True
+        return self
+
+    def __exit__(self, *exc):
+        self.active = False
+
+
+@pytest.fixture(scope="module")
+def compile_counter():
+    return CompileCounter()
+
+
+def test_new_physical_values_do_not_recompile(compile_counter):
+    """Medium sigma_t / albedo / g (via `replace_medium` and via new Modules), light intensity, BSDF reflectance,
+    geometry, camera placement and the key are traced values: rendering with new ones compiles nothing. (Positive
+    control: a new jitted function is counted.)"""
+    base = fog_scene()
+    variants = [
+        base.replace_medium(sigma_t=0.9),
+        base.replace_medium(albedo=(0.2, 0.5, 0.99), g=-0.4),
+        base.replace_medium(sigma_t=(0.0, 0.0, 0.0)),
+        base.replace_medium(g=np.float32(0.5), sigma_t=np.float64(0.7)),  # numpy scalars, other dtypes
+        base.replace_medium(g=jax.numpy.asarray(0.1)),
+        fog_scene(sigma_t=2.0, albedo=0.1, g=0.95, intensity=(1.0, 2.0, 3.0)),
+        eqx.tree_at(lambda s: s.shapes[0].bsdf.reflectance, base, jax.numpy.array([0.1, 0.2, 0.3])),
+        eqx.tree_at(lambda s: (s.lights[0].position, s.camera.origin), base,
+                    (jax.numpy.array([0.0, 0.7, 0.1]), jax.numpy.array([0.2, 1.7, 2.5]))),
+    ]
+    keys = [jax.random.key(i) for i in range(len(variants) + 1)]
+    jf.render(base, keys[-1], SPP, batch_paths=BATCH).block_until_ready()  # compile once
+    jf.render(base, keys[0], SPP, batch_paths=BATCH).block_until_ready()  # warm any eager helper ops
+    with compile_counter as cc:
+        images = [jf.render(s, k, SPP, batch_paths=BATCH).block_until_ready() for s, k in zip(variants, keys)]
+    assert cc.count == 0, f"{cc.count} compilations for new physical values"
+    # the new values were really used
+    means = [float(np.mean(np.asarray(im))) for im in images]
+    assert len(set(np.round(means, 6))) == len(means)
+
+    with compile_counter as cc:
+        jax.jit(lambda x: x * 3.0 + 1.0)(jax.numpy.ones(7)).block_until_ready()
+    assert cc.count >= 1
+
+
+# ------------------------------------------------------------------------------------------------ program size
+def primitive_counts(scene: jf.Scene) -> collections.Counter:
+    """Primitive counts of the traced render program (jaxpr), recursing into every sub-jaxpr (scan bodies,
+    checkpoint, pjit/filter_jit calls, conds): a measure of how much code the scene compiles."""
+
+    def visit(jaxpr, counts):
+        for eqn in jaxpr.eqns:
+            counts[eqn.primitive.name] += 1
+            for param in eqn.params.values():
+                for sub in param if isinstance(param, (tuple, list)) else (param,):
+                    if isinstance(sub, jex_core.ClosedJaxpr):
+                        visit(sub.jaxpr, counts)
+                    elif isinstance(sub, jex_core.Jaxpr):
+                        visit(sub, counts)
+        return counts
+
+    key = jax.random.key(0)
+    closed = jax.make_jaxpr(lambda s: jf.render(s, key, 1))(scene)
+    return visit(closed.jaxpr, collections.Counter())
+
+
+def test_program_contains_only_what_the_scene_needs():
+    """A diffuse floor under a point light traces to a program whose primitive multiset is contained in that of the
+    same scene plus fog, plus a glass sphere (vs. a diffuse sphere), or plus an area light, and strictly smaller:
+    features a scene lacks add no operations."""
+    cam = dataclasses.replace(FLOOR_CAMERA, width=4, height=3).build()
+    floor = make_floor()
+    point = jf.PointLight((-0.5, 2.0, 0.5), 5.0)
+    medium = jf.HomogeneousMedium(sigma_t=0.5, albedo=0.8, phase=jf.HenyeyGreenstein(0.3))
+    diffuse_sphere = jf.Sphere((0.3, 0.5, -0.2), 0.5, jf.Diffuse(0.5))
+    glass_sphere = jf.Sphere((0.3, 0.5, -0.2), 0.5, jf.Glass())
+    area = jf.AreaLight((0.0, 2.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), 3.0)
+
+    def scene(shapes, lights, med=None):
+        return jf.Scene(camera=cam, shapes=shapes, lights=lights, medium=med, max_depth=4)
+
+    pairs = {
+        "medium": (scene((floor,), (point,)), scene((floor,), (point,), medium)),
+        "glass": (scene((floor, diffuse_sphere), (point,)), scene((floor, glass_sphere), (point,))),
+        "area light": (scene((floor,), (point,)), scene((floor,), (point, area))),
+    }
+    for name, (small, big) in pairs.items():
+        cs, cb = primitive_counts(small), primitive_counts(big)
+        fewer = {p: (n, cb[p]) for p, n in cs.items() if cb[p] < n}
+        assert not fewer, f"adding {name} removed operations: {fewer}"
+        assert sum(cb.values()) > sum(cs.values()) * 1.05, (name, sum(cs.values()), sum(cb.values()))
