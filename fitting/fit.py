@@ -96,9 +96,8 @@ def _run(args) -> int:
     init_given = parse_assignments(args.init)
     if args.spp < 1:
         raise FitError(f"--spp must be >= 1, got {args.spp}")
-    out_dir = os.path.dirname(os.path.abspath(args.out))
-    if not os.path.isdir(out_dir):
-        raise FitError(f"--out: directory {out_dir} does not exist")
+    if not args.out.lower().endswith(".json"):
+        raise FitError(f"--out must name a .json file, got {args.out!r}")
     views, truths, scenes_full, targets_full = [], [], [], []
     for scene_path, target_path in pair_inputs(args.inputs):
         if not os.path.exists(target_path):
@@ -133,6 +132,7 @@ def _run(args) -> int:
     payload = result.to_json()
     payload.update({"targets": [v.name for v in views], "truth": truth, "spp": args.spp, "seed": args.seed,
                     "solver": args.solver, "downscale": args.downscale})
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     write_json_atomic(args.out, payload)
     base = os.path.splitext(args.out)[0]
     from .plots import plot_convergence, plot_comparison
