@@ -68,15 +68,16 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
 @dataclass
 class FitConfig:
     """How to fit. `spp`: samples per pixel of each render inside the solver; `solver`: "lm" (Levenberg–Marquardt,
-    forward-mode Jacobian) or "bfgs" (reverse-mode gradient); `max_rounds`: re-centring rounds at most; `repeats`:
-    extra solves with fresh keys for the spread; `rtol`/`atol`: solver tolerances on the unconstrained parameters;
+    forward-mode Jacobian) or "bfgs" (reverse-mode gradient); `max_rounds`: re-centring rounds at most (each with a
+    fresh key); the estimate is the mean of the last `repeats + 1` rounds once they show no trend, and their
+    spread gives the uncertainty; `rtol`/`atol`: solver tolerances on the unconstrained parameters;
     `max_steps` per solve; `chi2_max`: a fit whose residual exceeds this multiple of its expected noise is reported
     as not explaining the target."""
 
     spp: int = 8
     seed: int = 0
     solver: str = "lm"
-    max_rounds: int = 5
+    max_rounds: int = 8
     repeats: int = 2
     rtol: float = 1e-3
     atol: float = 1e-5
@@ -210,32 +211,33 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         cov = cov_y * np.outer(d, d)
         return cov
 
-    # ---- re-centring rounds
-    prev = None
+    # ---- re-centring rounds, each with a fresh key, until the last `window` estimates show no trend
+    window = max(2, cfg.repeats + 1)
+    thetas: list[np.ndarray] = []
+    converged = False
     rounds = 0
     cov = None
     for r in range(cfg.max_rounds):
         rounds += 1
         y, args = solve(y, r)
         theta = np.asarray([float(SPECS[n].from_u(y[i])) for i, n in enumerate(names)])
+        thetas.append(theta)
         cov = jacobian_se(y, args)
         se = np.sqrt(np.abs(np.diag(cov)))
-        log(f"round {r}: " + "  ".join(f"{n} {theta[i]:.5f} ± {se[i]:.5f}" for i, n in enumerate(names)))
-        if prev is not None and np.all(np.abs(theta - prev) <= 2.0 * se):
-            estimates.append(theta)
-            break
-        prev = theta
-    else:
-        estimates.append(theta)
+        log(f"round {r}: " + "  ".join(f"{n} {theta[i]:.5f} (± {se[i]:.5f} from the Jacobian)" for i, n in enumerate(names)))
+        if len(thetas) > window:
+            last = np.asarray(thetas[-window:])
+            noise = np.maximum(last.std(axis=0, ddof=1), se)
+            # no trend: the previous estimate sits within the window's own scatter of the window's mean
+            if np.all(np.abs(thetas[-window - 1] - last.mean(axis=0)) <= 3.0 * noise):
+                converged = True
+                break
+    if not converged:
         messages.append(f"estimate still moving after {cfg.max_rounds} re-centring rounds")
         solve_ok = False
-
-    # ---- repeats with fresh keys, for the spread
-    for k in range(cfg.repeats):
-        y_k, _ = solve(y, 1000 + k)
-        estimates.append(np.asarray([float(SPECS[n].from_u(y_k[i])) for i, n in enumerate(names)]))
+    estimates = thetas[-window:]
     est = np.mean(estimates, axis=0)
-    spread = np.std(estimates, axis=0, ddof=1) if len(estimates) > 1 else np.full(len(names), np.nan)
+    spread = np.std(estimates, axis=0, ddof=1)
     se_jac = np.sqrt(np.abs(np.diag(cov)))
     y_hat = to_unconstrained(names, {n: est[i] for i, n in enumerate(names)})
 
@@ -246,12 +248,16 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     a = problem.images(y_hat, k1, ref, estimator="detached", spp=spp_check)
     b = problem.images(y_hat, k2, ref, estimator="detached", spp=spp_check)
     chi2s = []
-    for v, ia, ib, s in zip(views, a, b, problem.scales):
-        ia, ib = pool(np.asarray(ia), _block(v)), pool(np.asarray(ib), _block(v))
-        t = pool(v.target, _block(v))
-        var_render = np.mean((ia - ib) ** 2) / 2.0
-        var_target = var_render * (spp_check / v.target_spp) if v.target_spp else 0.0
-        chi2s.append(float(np.mean((0.5 * (ia + ib) - t) ** 2) / (var_render / 2.0 + var_target + 1e-30)))
+    for v, ia, ib in zip(views, a, b):
+        # Robust to heavy-tailed (firefly) noise: ratio of medians of squared block residuals. For a model that
+        # explains the target, (mean of the two renders - target) has variance var/2 + var_target, and
+        # (ia - ib)/2 has var/2, with var_target = var * spp_check / target_spp.
+        blk = _block(v)
+        ia, ib, t = pool(np.asarray(ia), blk), pool(np.asarray(ib), blk), pool(v.target, blk)
+        factor = 1.0 + (2.0 * spp_check / v.target_spp if v.target_spp else 0.0)
+        num = np.median((0.5 * (ia + ib) - t) ** 2)
+        den = np.median(((ia - ib) / 2.0) ** 2) * factor
+        chi2s.append(float(num / max(den, 1e-30)))
     chi2 = float(max(chi2s))
     explained = chi2 <= cfg.chi2_max
     if not explained:
@@ -276,7 +282,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         messages=messages,
         uncertainty={
             n: {"se_jacobian": float(se_jac[i]), "sd_repeats": float(spread[i]),
-                "se": float(np.nanmax([se_jac[i], spread[i] / math.sqrt(len(estimates))]))}
+                "se": float(max(se_jac[i], spread[i] / math.sqrt(len(estimates))))}
             for i, n in enumerate(names)
         },
         iterations=iterations,
@@ -289,9 +295,9 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
 
 
 def _block(v: View) -> int:
-    """Block size for the noise check: 4 px where the image allows (pooling keeps a model mismatch, averages noise)."""
+    """Block size for the noise check: 2 px where the image allows (pooling keeps a model mismatch, averages noise)."""
     H, W = v.target.shape[:2]
-    for b in (4, 2, 1):
+    for b in (2, 1):
         if H % b == 0 and W % b == 0:
             return b
     return 1

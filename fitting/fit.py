@@ -73,8 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the fit's keys (targets use other seeds)")
     p.add_argument("--solver", choices=["lm", "bfgs"], default="lm", help="Levenberg–Marquardt (default) or BFGS")
     p.add_argument("--downscale", type=int, default=2, help="fit at 1/F of the target resolution (box-pooled target; default 2)")
-    p.add_argument("--rounds", type=int, default=5, help="re-centring rounds at most (default 5)")
-    p.add_argument("--repeats", type=int, default=2, help="extra solves with fresh keys for the spread (default 2)")
+    p.add_argument("--rounds", type=int, default=8, help="re-centring rounds at most, each with a fresh key (default 8)")
+    p.add_argument("--repeats", type=int, default=2, help="the estimate is the mean of the last REPEATS+1 rounds (default 2)")
     p.add_argument("--out", required=True, help="RESULT.json (PNG figures are written beside it)")
     p.add_argument("--quiet", action="store_true", help="no per-iteration progress")
     return p

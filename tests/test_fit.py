@@ -1,0 +1,120 @@
+"""The fit (fitting/): recovers known parameters on a small problem, reports failure on targets the model cannot
+explain, and rejects bad arguments with clear errors."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+import jaxfog
+from jaxfog._scene_io import scene_from_dict
+from fitting.core import FitConfig, fit_views, make_view
+from fitting.fit import main as fit_main
+from fitting.params import apply
+
+# A small backlit scene: a point light in the fog in front of the camera, seen at scattering angles from 0 to ~60
+# degrees (its halo pins g), and a lit floor (pins sigma_t through its extinction). 16 x 16 px, single scattering.
+SCENE = {
+    "name": "tiny_backlit",
+    "camera": {"origin": [0, 1, 3], "target": [0, 1, 0], "up": [0, 1, 0], "fov": 50, "width": 16, "height": 16},
+    "integrator": {"max_depth": 2, "spp": 16},
+    "medium": {"sigma_t": 0.5, "albedo": 0.9, "g": 0.5},
+    "shapes": [{"type": "rectangle", "center": [0, 0, 0], "edge_u": [8, 0, 0], "edge_v": [0, 0, -8],
+                "bsdf": {"type": "diffuse", "reflectance": 0.5}}],
+    "lights": [{"type": "point", "position": [0.0, 3.0, -0.5], "intensity": 20}],
+}
+TRUTH = {"sigma_t": 0.6, "g": 0.5}
+
+
+def _scene():
+    return scene_from_dict(json.loads(json.dumps(SCENE))).scene
+
+
+@pytest.fixture(scope="module")
+def target():
+    # Target: "detached" estimator, seed never used by the fit, 16x the fit's spp.
+    img = jaxfog.render(apply(_scene(), TRUTH), jax.random.key(991), 512, estimator="detached")
+    return np.asarray(img)
+
+
+def _fit(target, init, **kw):
+    view = make_view(_scene(), target, "tiny", downscale=1, target_spp=512)
+    cfg = FitConfig(spp=32, seed=0, max_rounds=4, repeats=2, **kw)
+    return fit_views([view], ["sigma_t", "g"], init, cfg, log=lambda *_: None)
+
+
+def test_fit_recovers_parameters_within_its_own_noise(target):
+    # Start 25% off in sigma_t and 0.15 off in g. (From a factor 2 and 0.3 off, LM settles in a wrong valley of this
+    # 16 x 16 scene, near (0.37, -0.32); the fit then reports failure, residual ~250x the noise: see the next tests.)
+    res = _fit(target, {"sigma_t": 0.45, "g": 0.35})
+    assert res.success, res.messages
+    for n, true in TRUTH.items():
+        se = res.uncertainty[n]["se"]
+        # 4 standard errors (se: the larger of the Jacobian's and the spread over keys / sqrt(n)), plus a floor of
+        # the target's own noise expressed in parameter units (target has 16x the fit's spp: ~1/4 of its se).
+        tol = 4.0 * se * np.sqrt(1 + 1 / 16)
+        assert abs(res.params[n] - true) < tol, (n, res.params[n], true, tol)
+    assert np.isfinite(res.chi2) and res.chi2 < 3.0
+
+
+def test_fit_reports_failure_on_black_target(target):
+    res = _fit(np.zeros_like(target), {"sigma_t": 0.3, "g": 0.2})
+    assert not res.success
+    assert res.messages
+
+
+def test_fit_reports_failure_on_a_different_scene(target):
+    # The light moved: no (sigma_t, g) explains this image.
+    other = json.loads(json.dumps(SCENE))
+    other["lights"][0]["position"] = [-1.0, 0.4, -0.5]
+    img = jaxfog.render(apply(scene_from_dict(other).scene, TRUTH), jax.random.key(992), 512)
+    res = _fit(np.asarray(img), {"sigma_t": 0.3, "g": 0.2})
+    assert not res.success
+    assert any("does not explain" in m or "did not converge" in m or "edge" in m for m in res.messages)
+
+
+# ------------------------------------------------------------------------------------------------- bad arguments
+@pytest.fixture
+def files(tmp_path, target):
+    scene_path = tmp_path / "tiny.json"
+    scene_path.write_text(json.dumps(SCENE))
+    target_path = tmp_path / "t.exr"
+    jaxfog.write_exr(str(target_path), target, {"jaxfog:spp": 512})
+    small = tmp_path / "small.exr"
+    jaxfog.write_exr(str(small), target[:8, :8], {})
+    return scene_path, target_path, small, tmp_path
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--fit", "sigma_t", "gg"], "unknown parameter 'gg'"),
+        (["--fit", "sigma_t", "--init", "g=1.5"], "g=1.5: valid range"),
+        (["--fit", "sigma_t", "--init", "sigma_t"], "expects name=value"),
+    ],
+)
+def test_bad_parameter_arguments(files, capsys, args, message):
+    scene_path, target_path, _, tmp = files
+    code = fit_main([str(scene_path), str(target_path), *args, "--out", str(tmp / "r.json")])
+    assert code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_target_of_wrong_size(files, capsys):
+    scene_path, _, small, tmp = files
+    code = fit_main([str(scene_path), str(small), "--out", str(tmp / "r.json")])
+    assert code == 2
+    assert "8x8 px but the scene's camera is 16x16 px" in capsys.readouterr().err
+
+
+def test_missing_files(files, capsys):
+    scene_path, target_path, _, tmp = files
+    assert fit_main([str(scene_path), str(tmp / "nope.exr"), "--out", str(tmp / "r.json")]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert fit_main([str(tmp / "nope.json"), str(target_path), "--out", str(tmp / "r.json")]) == 2
+    assert "nope.json" in capsys.readouterr().err
+    assert fit_main([str(target_path), "--out", str(tmp / "r.json")]) == 2
+    assert "before any SCENE.json" in capsys.readouterr().err
