@@ -137,6 +137,21 @@ class Problem:
                                      estimator=estimator, proposal=ref))
         return out
 
+    def cross_loss(self, y, args):
+        """Unbiased loss for noisy renders: mean over pixels of `(A - T)(B - T)` (relative), with A and B rendered
+        with two independent keys. Its expectation is the squared bias `(E[A] - T)^2` alone, whereas `(A - T)^2` also
+        carries `Var[A]`, which varies with the parameters (strongly with g near a spot light) and pulls a
+        least-squares fit toward parameters where the render is less noisy."""
+        key, ref = args
+        ka, kb = jax.random.split(key)
+        A = self.images(y, ka, ref)
+        B = self.images(y, kb, ref)
+        loss = sum(jnp.mean((a - t) * (b - t)) / (s * s) for a, b, t, s in zip(A, B, self.targets, self.scales))
+        loss = loss / len(self.views)
+        if self.on_eval is not None:
+            jax.debug.callback(self.on_eval, y, loss)
+        return loss
+
     def residuals(self, y, args):
         key, ref = args
         imgs = self.images(y, key, ref)
@@ -186,8 +201,12 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         state["round"] = round_id
         key = jax.random.fold_in(base_key, round_id)
         ref = _reference(views, from_unconstrained(names, y0))
-        sol = optx.least_squares(problem.residuals, solver, y0, args=(key, ref), throw=False,
-                                 max_steps=cfg.max_steps)
+        if cfg.solver == "lm":
+            sol = optx.least_squares(problem.residuals, solver, y0, args=(key, ref), throw=False,
+                                     max_steps=cfg.max_steps)
+        else:
+            sol = optx.minimise(problem.cross_loss, solver, y0, args=(key, ref), throw=False,
+                                max_steps=cfg.max_steps)
         steps = int(sol.stats["num_steps"])
         iterations += steps
         ok = sol.result == optx.RESULTS.successful
