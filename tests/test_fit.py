@@ -42,7 +42,7 @@ def target():
 
 def _fit(target, init, **kw):
     view = make_view(_scene(), target, "tiny", downscale=1, target_spp=512)
-    cfg = FitConfig(spp=32, seed=0, max_rounds=4, repeats=2, **kw)
+    cfg = FitConfig(spp=32, seed=0, max_rounds=8, repeats=2, **kw)
     return fit_views([view], ["sigma_t", "g"], init, cfg, log=lambda *_: None)
 
 
