@@ -175,6 +175,10 @@ def _version() -> str:
 COMMANDS: list[Command] = [
     Command("render", "render a scene file to an OpenEXR (and optionally a PNG preview)",
             _configure_render, _run_render),
+    Command("bench", "benchmark: error against time per sampling strategy, bias against max_depth, Mitsuba 3 "
+            "side by side (jaxfog.bench)",
+            lambda p: __import__("jaxfog.bench", fromlist=["configure"]).configure(p),
+            lambda args: __import__("jaxfog.bench", fromlist=["run"]).run(args)),
 ]
 """The subcommands, in `--help` order. Add `Command(name, help, configure, run)` entries for new ones."""
 

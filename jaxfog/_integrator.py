@@ -341,7 +341,11 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
                 w_med = sigma_s * safe_div(jnp.exp(-sigma_t * t), p_v)
             else:
                 w_med = M.medium_weight(sigma_t, sigma_s, prop.sigma_hat, t, s, jnp.where(is_med, q, 1.0))
-            w_surf = jnp.where(active, M.surface_weight(sigma_t, s, log1mq), 1.0)
+            # double where: on a segment that escapes (no surface) the surface branch is never used, and
+            # exp(-(sigma_t - sigma_hat) s) at s = extent overflows for a proposal with sigma_hat > sigma_t (0 * inf)
+            on_surf = active & hit
+            w_surf = jnp.where(on_surf, M.surface_weight(sigma_t, jnp.where(on_surf, s, 0.0),
+                                                         jnp.where(on_surf, log1mq, 0.0)), 1.0)
             ff_pdf = vertex_pdf(t)
         else:
             is_med = jnp.bool_(False)
@@ -358,8 +362,10 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
                 wl, dist, E = delta_incident(light, xe)
                 vis = ~occluded(pk, xe, wl, dist)
                 f = sigma_s * jnp.exp(-sigma_t * te) * hg_pdf(one_minus_cos_between(state.d, wl), g)
-                c = state.beta * f * E * transmit(dist) * safe_div(1.0, p_eq + vertex_pdf(te))
-                L = L + jnp.where(seg_ok & valid & vis & (p_eq > 0), c, 0.0)
+                use = seg_ok & valid & vis & (p_eq > 0)
+                # double where: an unused sample's MIS denominator can be ~1e-30 (dense fog), whose 1/x^2 overflows
+                c = state.beta * f * E * transmit(dist) * safe_div(1.0, jnp.where(use, p_eq + vertex_pdf(te), 1.0))
+                L = L + jnp.where(use, c, 0.0)
         eq_setups = eq_setups or None
 
         new = {}

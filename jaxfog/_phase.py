@@ -39,9 +39,12 @@ def hg_sample(u: Float[Array, ""], g: Float[Array, ""]) -> tuple[Float[Array, ""
 def hg_pdf(one_minus_cos: Float[Array, ""], g: Float[Array, ""]) -> Float[Array, ""]:
     """HG phase function value (= its pdf over solid angle, 1/sr), from `1 - cos theta` in [0, 2] and g in (-1, 1).
 
-    `p = (1 - g)(1 + g) / (4 pi ((1 - g)^2 + 2 g (1 - cos))^(3/2))`: no cancellation near the forward peak.
+    `p = (1 - g)(1 + g) / (4 pi ((1 - g)^2 + 2 g (1 - cos))^(3/2))`: no cancellation near the forward peak. For
+    g < 0 the same denominator is written `(1 + g)^2 - 2 g (1 + cos)` (a sum of two terms >= 0): the first form
+    cancels at the backward peak and rounds to <= 0 for g -> -1 (NaN from the square root, e.g. g = -0.999).
     """
-    denom = (1.0 - g) ** 2 + 2.0 * g * one_minus_cos
+    one_plus_cos = jnp.maximum(2.0 - one_minus_cos, 0.0)
+    denom = jnp.where(g >= 0, (1.0 - g) ** 2 + 2.0 * g * one_minus_cos, (1.0 + g) ** 2 - 2.0 * g * one_plus_cos)
     return (1.0 - g) * (1.0 + g) * INV_4PI / (denom * jnp.sqrt(denom))
 
 

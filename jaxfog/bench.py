@@ -1,0 +1,1007 @@
+"""Speed against error: `python -m jaxfog.bench [--quick] [--out DIR] [--scenes ...]` (also `jaxfog bench`).
+
+Three studies, each printed as a table, written to `DIR/bench.json` and plotted as PNG:
+
+1. **Strategies** (`rmse_vs_time.png`). For each benchmark scene and each sampling strategy (`STRATEGIES`: plain free
+   flight with light sampling, + equiangular, + light-angle lobe, + equiangular/free-flight vertex mixture = the
+   default), the per-pixel RMSE against a high-spp reference versus wall time after compilation. Each strategy first
+   renders one discarded warm-up image (its compile time, measured from JAX's own compile events, is reported apart),
+   then independent chunks whose running average reaches the spp `levels`; the time of a level is the sum of its
+   chunks' wall times (each until the pixels are on the host). The reference is rendered once per scene with the
+   default strategy in `ref_chunks` independent chunks and cached in `DIR/cache/` (keyed by the scene, the settings
+   and the renderer's source); its own RMSE is `RMSE(half_A - half_B) / 2`, and `rmse_corrected =
+   sqrt(rmse^2 - rmse_ref^2)` removes it (the two images are independent and unbiased). Also: throughput in paths per
+   second, XLA's compiled memory for one batch, the time each strategy needs to reach a common RMSE (the largest
+   final RMSE of the scene's strategies) as a ratio to the default's, and the variance reduction of equiangular
+   sampling (MSE ratio at equal spp and at equal time).
+2. **Depth against bias** (`depth_bias.png`). For thin, default and dense fog, the bias of `max_depth` 2, 3, 4, 8, 16
+   (and 32) against a deep reference (64), with common random numbers: every depth traces the same paths (bounce `i`
+   of sample `k` draws its numbers from `fold_in(fold_in(key, k), i)`), so a depth-`d` path is exactly the first
+   `d - 1` segments of the deep one and the difference of two images has only the noise of the longer paths.
+   Reported: the relative mean-image difference (with its standard error over samples), the per-pixel RMSE beyond
+   noise (`sqrt(mean(Delta_A * Delta_B))` over two independent halves), and the time per spp. `pick_depth` picks
+   the cheapest depth for a requested relative error from that table.
+3. **Mitsuba 3 side by side** (optional extra `compare`; `jaxfog.bench_mitsuba`): the same scene rendered in Mitsuba's
+   `volpath` (LLVM backend) in a subprocess in the same run; the means (image and 4 x 4 regions) are compared within
+   their standard errors, and the time-to-equal-error ratio is printed: jaxfog's time (default strategy) to reach
+   Mitsuba's 64-spp RMSE against the shared reference, over Mitsuba's time for 64 spp. Without Mitsuba the run says
+   it was skipped.
+
+Peak memory: `memory_analysis()` of the compiled batch (XLA's argument + output + temporary buffers of one call of
+`paths_per_call` paths), and the process's peak resident set size (`resource.getrusage`, `ru_maxrss`) after each
+study; Mitsuba's peak RSS is its subprocess's own.
+
+Timings are wall-clock on whatever else the machine is running (the load average is recorded); ratios inside one
+run are the comparable numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+STRATEGIES: dict[str, dict] = {
+    "free_flight": dict(equiangular=False, light_lobe=0.0, distance_mix=0.0),
+    "equiangular": dict(equiangular=True, light_lobe=0.0, distance_mix=0.0),
+    "eq+lobe": dict(equiangular=True, light_lobe=0.3, distance_mix=0.0),
+    "default": dict(equiangular=True, light_lobe=0.3, distance_mix=0.3),
+}
+"""Sampling strategies, each adding one technique to the previous: plain free flight with light sampling (NEE) at
+every vertex; + equiangular sampling toward the delta lights on every segment (clipped to the spot cone, MIS with free
+flight); + the light-angle direction lobe (30%); + the equiangular/free-flight mixture for path vertices (30%), which
+is `render`'s default."""
+
+DEFAULT_STRATEGY = "default"
+SCENE_DIR = Path(__file__).resolve().parent.parent / "data_synthetic" / "scenes"
+
+
+@dataclass
+class Config:
+    """What one run measures. `FULL` is the committed run (about 20 minutes on 2 busy cores), `QUICK` a smoke run."""
+
+    scenes: tuple = ("spot_fog", "backlit", "spot_fog_thin")
+    size: int = 128  # image width = height for the strategy study
+    levels: tuple = (1, 2, 4, 8, 16, 32, 64)  # cumulative spp at which RMSE is recorded (multiples of the first)
+    ref_spp: int = 256
+    ref_chunks: int = 8
+    strategies: tuple = tuple(STRATEGIES)
+    depth_scenes: tuple = ("spot_fog_thin", "spot_fog", "spot_fog_dense")
+    depths: tuple = (2, 3, 4, 8, 16, 32, 64)  # measured where below the scene's reference depth
+    depth_refs: tuple = (32, 64, 128)  # deep reference max_depth of each depth scene (dense fog needs long paths)
+    depth_size: int = 64
+    depth_spp: int = 16  # two halves of depth_spp / 2
+    depth_layers_per_call: int = 4
+    mitsuba_scene: str = "spot_fog"
+    mitsuba_spp: int = 16  # per Mitsuba render
+    mitsuba_chunks: int = 64
+    seed: int = 0
+    parts: tuple = ("strategies", "depth", "mitsuba")
+
+
+FULL = Config()
+QUICK = Config(scenes=("spot_fog",), size=16, levels=(4, 8, 16), ref_spp=64, ref_chunks=4, depths=(2, 4),
+               depth_refs=(8, 8, 8), depth_size=16, depth_spp=8, depth_layers_per_call=4, mitsuba_spp=16, mitsuba_chunks=8)
+
+
+# ========================================================================================= statistics (pure numpy)
+def rmse(image, reference) -> float:
+    """Per-pixel RMSE over all pixels and channels."""
+    d = np.asarray(image, np.float64) - np.asarray(reference, np.float64)
+    return float(np.sqrt(np.mean(d * d)))
+
+
+def reference_rmse(half_a, half_b) -> float:
+    """RMSE against the truth of the average of two independent equal halves: `RMSE(A - B) / 2`."""
+    return rmse(half_a, half_b) / 2.0
+
+
+def corrected_rmse(raw: float, ref_rmse: float) -> float:
+    """RMSE against the truth of an image whose RMSE against an independent unbiased reference is `raw`."""
+    return float(math.sqrt(max(raw * raw - ref_rmse * ref_rmse, 0.0)))
+
+
+def worst_pixel_share(image, reference) -> float:
+    """Share of the squared error (`image - reference`, channels summed) carried by the single worst pixel: near 1
+    means the RMSE is one firefly."""
+    e = np.sum((np.asarray(image, np.float64) - np.asarray(reference, np.float64)) ** 2, axis=-1)
+    total = float(e.sum())
+    return float(e.max() / total) if total > 0 else 0.0
+
+
+ONE_PIXEL = 0.5
+"""A strategy whose final squared error is more than this share in one pixel is flagged as dominated by a firefly."""
+
+
+def mean_and_se(values) -> tuple[float, float]:
+    """Mean of independent samples and its standard error (`std(ddof=1) / sqrt(n)`; nan for one sample)."""
+    v = np.asarray(values, np.float64)
+    se = float(np.std(v, ddof=1) / math.sqrt(v.size)) if v.size > 1 else float("nan")
+    return float(np.mean(v)), se
+
+
+def block_means(image, n: int = 4) -> np.ndarray:
+    """Means over an `n x n` grid of blocks (rows top to bottom, columns left to right), channels averaged."""
+    img = np.asarray(image, np.float64).mean(axis=-1)
+    H, W = img.shape
+    rows = np.array_split(np.arange(H), n)
+    cols = np.array_split(np.arange(W), n)
+    return np.array([[img[np.ix_(r, c)].mean() for c in cols] for r in rows])
+
+
+def time_to_rmse(times, rmses, target: float) -> tuple[float, str]:
+    """Time at which a measured RMSE-vs-time curve first reaches `target`: `(seconds, how)`.
+
+    Between measured points: log-log interpolation (`how = "interpolated"`). Before the first or after the last point:
+    extrapolation with RMSE ~ time^(-1/2), the rate of an estimator with finite variance (`how = "extrapolated"`)."""
+    t = np.asarray(times, np.float64)
+    r = np.asarray(rmses, np.float64)
+    if not (target > 0 and np.all(t > 0)) or t.size == 0:
+        raise ValueError("need positive times and a positive target")
+    below = np.nonzero(r <= target)[0]
+    if below.size == 0:
+        return float(t[-1] * (r[-1] / target) ** 2), "extrapolated"
+    i = int(below[0])
+    if i == 0:
+        return float(t[0] * (r[0] / target) ** 2) if r[0] > 0 else float(t[0]), "extrapolated"
+    lr0, lr1 = math.log(r[i - 1]), math.log(max(r[i], 1e-300))
+    lt0, lt1 = math.log(t[i - 1]), math.log(t[i])
+    f = (math.log(target) - lr0) / (lr1 - lr0) if lr1 != lr0 else 1.0
+    return float(math.exp(lt0 + f * (lt1 - lt0))), "interpolated"
+
+
+def pick_depth(table, rel_error: float, metric: str = "pixel") -> int | None:
+    """The cheapest `max_depth` whose bias against the deep reference is within `rel_error` (relative to the mean
+    pixel value of the reference), from one scene's depth table.
+
+    **Arguments:**
+    - `table`: that scene's `rows` from `bench.json` (`["depth"]["scenes"][name]["rows"]`), or the scene's dict
+      holding them; each row has `depth`, `time_per_spp_s`, `rel_mean_bias`, `rel_mean_bias_se`, `rel_pixel_bias`.
+    - `rel_error`: the largest acceptable relative bias, e.g. 0.01 for 1%.
+    - `metric`: `"pixel"` (default) bounds the per-pixel RMSE beyond noise and the mean-image difference plus two
+      standard errors; `"mean"` only the mean-image difference plus two standard errors.
+
+    Returns the depth, or None when no measured depth short of the reference is good enough (then the reference depth
+    itself, or deeper, is needed; the reference's own truncation is not measured)."""
+    rows = table["rows"] if isinstance(table, dict) else table
+    if metric not in ("pixel", "mean"):
+        raise ValueError(f"metric must be 'pixel' or 'mean', got {metric!r}")
+    if not rel_error > 0:
+        raise ValueError(f"rel_error must be > 0, got {rel_error!r}")
+    ok = []
+    for row in rows:
+        if row.get("is_reference"):
+            continue
+        bound = abs(row["rel_mean_bias"]) + 2.0 * row["rel_mean_bias_se"]
+        if metric == "pixel":
+            bound = max(bound, row["rel_pixel_bias"])
+        if bound <= rel_error:
+            ok.append((row["time_per_spp_s"], row["depth"]))
+    return min(ok)[1] if ok else None
+
+
+# ================================================================================================ measurement
+class CompileTimer:
+    """Sums JAX's tracing, lowering and backend-compile durations (jax.monitoring events) while active."""
+
+    EVENTS = (
+        "/jax/core/compile/jaxpr_trace_duration",
+        "/jax/core/compile/jaxpr_to_mlir_module_duration",
+        "/jax/core/compile/backend_compile_duration",
+    )
+
+    def __init__(self):
+        self.seconds = 0.0
+
+    def _listener(self, event: str, duration: float, **kwargs) -> None:
+        if event in self.EVENTS:
+            self.seconds += duration
+
+    def __enter__(self):
+        try:
+            import jax.monitoring
+
+            jax.monitoring.register_event_duration_secs_listener(self._listener)
+            self._jm = jax.monitoring
+        except ImportError:  # fake renderers in tests
+            self._jm = None
+        return self
+
+    def __exit__(self, *exc):
+        if self._jm is not None:
+            self._jm.unregister_event_duration_listener(self._listener)
+        return False
+
+
+def max_rss_mib() -> float:
+    """Peak resident set size of this process so far, in MiB: `VmHWM` of `/proc/self/status` where there is one (it
+    starts afresh at `exec`), else `getrusage(RUSAGE_SELF).ru_maxrss` (Linux keeps that one across `exec`, so a child
+    started by a big parent would report the parent's size)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+RenderFn = Callable[..., np.ndarray]
+"""`render_fn(scene, seed, spp, **strategy) -> (H, W, 3) numpy image`; the result must be on the host."""
+
+
+def measure_strategy(scene, render_fn: RenderFn, strategy: dict, levels, seed: int, reference, ref_rmse: float,
+                     mean_ref: float, clock: Callable[[], float] = time.perf_counter) -> dict:
+    """RMSE against `reference` versus wall time (after a discarded warm-up render that compiles) at the cumulative
+    spp `levels`; chunk `i` uses seed `seed * 1000 + i`. See the module docstring."""
+    levels = [int(x) for x in levels]
+    n_pix = int(np.prod(np.shape(reference)[:2]))
+    with CompileTimer() as ct:
+        t0 = clock()
+        render_fn(scene, seed * 1000 + 999, levels[0], **strategy)
+        warmup = clock() - t0
+    total = None
+    elapsed, done, out = 0.0, 0, []
+    for i, lv in enumerate(levels):
+        chunk = lv - done
+        t0 = clock()
+        img = np.asarray(render_fn(scene, seed * 1000 + i, chunk, **strategy), np.float64)
+        elapsed += clock() - t0
+        total = img * chunk if total is None else total + img * chunk
+        done = lv
+        mean_img = total / done
+        raw = rmse(mean_img, reference)
+        corr = corrected_rmse(raw, ref_rmse)
+        out.append({"spp": lv, "time_s": elapsed, "rmse": raw, "rmse_corrected": corr,
+                    "rel_rmse_corrected": corr / mean_ref, "mean": float(mean_img.mean()),
+                    "worst_pixel_share": worst_pixel_share(mean_img, reference), "max_pixel": float(mean_img.max()),
+                    "paths_per_s": n_pix * lv / elapsed if elapsed > 0 else float("nan")})
+    return {
+        "options": dict(strategy),
+        "compile_s": ct.seconds,
+        "warmup_s": warmup,
+        "warmup_spp": levels[0],
+        "time_per_spp_s": elapsed / levels[-1],
+        "paths_per_s": n_pix * levels[-1] / elapsed if elapsed > 0 else float("nan"),
+        "levels": out,
+        "final_mean": out[-1]["mean"],
+    }
+
+
+def summarize_scene(result: dict) -> None:
+    """Adds the common target RMSE (the largest final RMSE of the strategies not dominated by one pixel, see
+    `ONE_PIXEL`), each strategy's time to reach it and its ratio to the default strategy."""
+    strategies = result["strategies"]
+    finals = [s["levels"][-1] for s in strategies.values()]
+    clean = [x["rmse_corrected"] for x in finals if x.get("worst_pixel_share", 0.0) <= ONE_PIXEL]
+    target = max(clean or [x["rmse_corrected"] for x in finals])
+    result["target_rmse"] = target
+    result["target_rel_rmse"] = target / result["reference"]["mean"]
+    for s in strategies.values():
+        lv = s["levels"]
+        t, how = time_to_rmse([x["time_s"] for x in lv], [x["rmse_corrected"] for x in lv], target)
+        s["time_to_target_s"], s["time_to_target_how"] = t, how
+    if DEFAULT_STRATEGY in strategies:
+        t_def = strategies[DEFAULT_STRATEGY]["time_to_target_s"]
+        for s in strategies.values():
+            s["time_ratio_to_default"] = s["time_to_target_s"] / t_def
+
+
+def variance_reduction(result: dict, base: str = "free_flight", better: str = "equiangular") -> dict | None:
+    """MSE ratio `base / better` at equal spp and at equal time (MSE x time, the inverse efficiency), per level."""
+    st = result["strategies"]
+    if base not in st or better not in st:
+        return None
+    rows = []
+    for a, b in zip(st[base]["levels"], st[better]["levels"]):
+        if a["spp"] != b["spp"] or b["rmse_corrected"] <= 0:
+            continue
+        equal_spp = (a["rmse_corrected"] / b["rmse_corrected"]) ** 2
+        rows.append({"spp": a["spp"], "mse_ratio_equal_spp": equal_spp,
+                     "mse_ratio_equal_time": equal_spp * a["time_s"] / b["time_s"]})
+    if not rows:
+        return None
+    geo = lambda k: float(np.exp(np.mean([np.log(r[k]) for r in rows])))  # noqa: E731
+    return {"base": base, "better": better, "levels": rows, "at_max_spp": rows[-1],
+            "geomean_equal_spp": geo("mse_ratio_equal_spp"), "geomean_equal_time": geo("mse_ratio_equal_time")}
+
+
+# ===================================================================================================== jaxfog side
+def scene_path(name: str) -> Path:
+    """A shipped scene by name (`spot_fog`), or a path to a scene file."""
+    p = Path(name)
+    if p.suffix == ".json":
+        return p
+    return SCENE_DIR / f"{name}.json"
+
+
+def load(name: str, size: int, extra=()):
+    from ._scene_io import load_scene
+
+    return load_scene(scene_path(name), [f"camera.width={size}", f"camera.height={size}", *extra])
+
+
+def jaxfog_render_fn(paths_per_call: int) -> RenderFn:
+    """`render_fn` for `measure_strategy`: `jaxfog.render` with a fixed batch size (so every chunk reuses one
+    compiled program), waiting for the pixels."""
+    import jax
+
+    from ._render import render
+
+    def fn(scene, seed, spp, **strategy):
+        return np.asarray(render(scene, jax.random.key(seed), spp, batch_paths=paths_per_call, **strategy))
+
+    return fn
+
+
+def xla_memory(scene, strategy: dict, paths_per_call: int) -> dict | None:
+    """XLA's `memory_analysis()` of the compiled batch that `render` runs (hits the in-memory compile cache).
+    None where the renderer's internals have changed shape."""
+    try:
+        import jax
+        import jax.numpy as jnp
+
+        from ._integrator import Options
+        from ._render import _render_layers, layers_per_batch
+
+        per = layers_per_batch(scene, 1 << 30, paths_per_call)
+        args = (scene, jax.random.key(0), jnp.arange(per, dtype=jnp.uint32), jnp.int32(per), Options(**strategy), None)
+        ma = _render_layers.lower(*args).compile().compiled.memory_analysis()
+        mib = 1.0 / (1 << 20)
+        return {"temp_mib": ma.temp_size_in_bytes * mib, "argument_mib": ma.argument_size_in_bytes * mib,
+                "output_mib": ma.output_size_in_bytes * mib,
+                "total_mib": (ma.temp_size_in_bytes + ma.argument_size_in_bytes + ma.output_size_in_bytes) * mib,
+                "paths_per_call": per * scene.camera.width * scene.camera.height}
+    except Exception as e:  # pragma: no cover - depends on private internals
+        return {"error": f"{type(e).__name__}: {e}"}
+
+
+def _source_hash() -> str:
+    h = hashlib.sha256()
+    for p in sorted(Path(__file__).resolve().parent.glob("_*.py")):
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def reference_image(sf, cfg: Config, cache_dir: Path, render_fn: RenderFn, fresh: bool = False, log=print) -> dict:
+    """The scene's high-spp reference (default strategy, `ref_chunks` independent chunks), cached in `cache_dir`."""
+    key = json.dumps({"data": sf.data, "spp": cfg.ref_spp, "chunks": cfg.ref_chunks, "seed": cfg.seed,
+                      "strategy": STRATEGIES[DEFAULT_STRATEGY], "src": _source_hash()}, sort_keys=True)
+    digest = hashlib.sha256(key.encode()).hexdigest()[:12]
+    W, H = sf.data["camera"]["width"], sf.data["camera"]["height"]
+    path = cache_dir / f"ref_{sf.name}_{W}x{H}_{cfg.ref_spp}spp_{digest}.npz"
+    compile_s = None
+    if path.exists() and not fresh:
+        z = np.load(path)
+        chunks, times, cached = z["chunks"], z["times"], True
+        log(f"  reference: cached {path.name}")
+    else:
+        per_chunk = cfg.ref_spp // cfg.ref_chunks
+        chunks, times = [], []
+        with CompileTimer() as ct:
+            render_fn(sf.scene, 7_000_000 + cfg.seed, per_chunk, **STRATEGIES[DEFAULT_STRATEGY])  # compiles
+        compile_s = ct.seconds
+        for i in range(cfg.ref_chunks):
+            t0 = time.perf_counter()
+            chunks.append(render_fn(sf.scene, 1_000_000 + 1000 * cfg.seed + i, per_chunk,
+                                    **STRATEGIES[DEFAULT_STRATEGY]))
+            times.append(time.perf_counter() - t0)
+            log(f"  reference chunk {i + 1}/{cfg.ref_chunks}: {per_chunk} spp in {times[-1]:.1f} s")
+        chunks, times, cached = np.stack(chunks).astype(np.float32), np.asarray(times), False
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, chunks=chunks, times=times)
+        os.replace(tmp, path)
+    k = chunks.shape[0]
+    half_a, half_b = chunks[: k // 2].mean(0), chunks[k // 2:].mean(0)
+    image = chunks.mean(0)
+    mean, se = mean_and_se(chunks.reshape(k, -1).mean(1))
+    r = reference_rmse(half_a, half_b)
+    return {"image": image, "chunks": chunks, "spp": cfg.ref_spp, "chunks_n": k, "mean": mean, "mean_se": se,
+            "rmse": r, "rel_rmse": r / mean, "render_s": float(np.sum(times)), "cached": cached, "file": path.name,
+            "compile_s": compile_s}
+
+
+def structure(sf) -> str:
+    """What decides the compiled program of a scene file (scenes with equal structure share programs)."""
+    d = sf.data
+    return json.dumps([d["camera"]["width"], d["camera"]["height"], d["integrator"]["max_depth"],
+                       d.get("medium") is not None, [(x["type"], x["bsdf"]["type"]) for x in d["shapes"]],
+                       [x["type"] for x in d["lights"]]])
+
+
+def bench_scene(name: str, cfg: Config, cache_dir: Path, fresh_ref: bool = False, log=print,
+                compiled: dict | None = None) -> dict:
+    """The strategy study on one scene: reference, then every strategy (see `measure_strategy`). `compiled` maps
+    `(structure, strategy)` to `(scene, compile seconds)` of the first compilation seen in this run."""
+    compiled = {} if compiled is None else compiled
+    sf = load(name, cfg.size)
+    sig = structure(sf)
+    n_pix = cfg.size * cfg.size
+    paths_per_call = n_pix * cfg.levels[0]
+    render_fn = jaxfog_render_fn(paths_per_call)
+    log(f"{sf.name}: {cfg.size}x{cfg.size}")
+    ref = reference_image(sf, cfg, cache_dir, render_fn, fresh=fresh_ref, log=log)
+    if ref["compile_s"] is not None and (sig, DEFAULT_STRATEGY) not in compiled:
+        compiled[(sig, DEFAULT_STRATEGY)] = (f"{sf.name} (reference render)", ref["compile_s"])
+    res = {"scene": sf.name, "width": cfg.size, "height": cfg.size, "max_depth": sf.data["integrator"]["max_depth"],
+           "reference": {k: v for k, v in ref.items() if k not in ("image", "chunks")}, "strategies": {}}
+    for j, sname in enumerate(cfg.strategies):
+        opts = STRATEGIES[sname]
+        m = measure_strategy(sf.scene, render_fn, opts, cfg.levels, cfg.seed * 100 + j + 1, ref["image"],
+                             ref["rmse"], ref["mean"])
+        m["xla_memory"] = xla_memory(sf.scene, opts, paths_per_call)
+        if (sig, sname) in compiled:
+            m["compiled_by"], m["compile_s_first"] = compiled[(sig, sname)]
+        else:
+            compiled[(sig, sname)] = (sf.name, m["compile_s"])
+            m["compiled_by"], m["compile_s_first"] = sf.name, m["compile_s"]
+        res["strategies"][sname] = m
+        lv = m["levels"][-1]
+        log(f"  {sname:12s} compile {m['compile_s_first']:5.1f} s, {1e3 * m['time_per_spp_s']:7.0f} ms/spp, "
+            f"{m['paths_per_s'] / 1e3:6.1f} kpaths/s, rel RMSE {lv['rel_rmse_corrected']:.3f} at {lv['spp']} spp")
+    summarize_scene(res)
+    res["max_rss_mib_after"] = max_rss_mib()
+    return res, ref
+
+
+# ------------------------------------------------------------------------------------------------- depth study
+_DEPTH_FN = None
+
+
+def _depth_layers_fn():
+    """A jitted `(scene, key, layer_ids, options) -> (n_layers, H*W, 3)` radiance per sample layer, where bounce `i`
+    of layer `k` draws its uniforms from `fold_in(fold_in(k_path, k), i)`: the same paths for every `max_depth`."""
+    global _DEPTH_FN
+    if _DEPTH_FN is not None:
+        return _DEPTH_FN
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from ._integrator import make_proposal, n_dims, n_iterations, trace_path
+    from ._scene import pack
+
+    @eqx.filter_jit
+    def layers(scene, key, layer_ids, options):
+        cam = scene.camera
+        H, W = cam.height, cam.width
+        pk = pack(scene)
+        prop = make_proposal(scene, options, None)
+        n_iter, K = n_iterations(scene), n_dims(scene)
+        rows, cols = jnp.divmod(jnp.arange(H * W), W)
+        base = jnp.stack([cols, rows], axis=-1).astype(jnp.float32)
+
+        def one_layer(layer_id):
+            k_pix, k_path = jax.random.split(jax.random.fold_in(key, layer_id))
+            jitter = jax.random.uniform(k_pix, (H * W, 2))
+            U = jnp.stack([jax.random.uniform(jax.random.fold_in(k_path, i), (H * W, K)) for i in range(n_iter)],
+                          axis=1) if n_iter else jnp.zeros((H * W, 0, K))
+
+            def one_path(pixel, U_p):
+                o, d = cam.generate_ray(pixel)
+                return trace_path(scene, pk, prop, options, o, d, U_p)
+
+            return jax.vmap(one_path)(base + jitter, U)
+
+        return jax.lax.map(one_layer, layer_ids)
+
+    _DEPTH_FN = layers
+    return layers
+
+
+def depth_study(cfg: Config, log=print) -> dict:
+    """Bias of each `max_depth` in `cfg.depths` (those below the scene's reference depth, `cfg.depth_refs`) against the
+    reference depth, with common random numbers (see the module docstring)."""
+    import jax
+    import jax.numpy as jnp
+
+    from ._integrator import Options
+
+    fn = _depth_layers_fn()
+    options = Options(**STRATEGIES[DEFAULT_STRATEGY])
+    L = cfg.depth_layers_per_call
+    n_calls = max(2, -(-cfg.depth_spp // L))
+    n_calls += n_calls % 2
+    spp = n_calls * L
+    key = jax.random.key(5_000_000 + cfg.seed)
+    compiled = set()
+    out = {"width": cfg.depth_size, "height": cfg.depth_size, "spp": spp, "strategy": DEFAULT_STRATEGY, "scenes": {}}
+    n_pix = cfg.depth_size ** 2
+    for name, ref_depth in zip(cfg.depth_scenes, cfg.depth_refs):
+        depths = sorted({d for d in cfg.depths if d < ref_depth} | {ref_depth})
+        per_depth = {}
+        for d in depths:
+            sf = load(name, cfg.depth_size, [f"integrator.max_depth={d}"])
+            struct = (d, json.dumps([s["type"] for s in sf.data["shapes"]]), json.dumps([x["type"] for x in sf.data["lights"]]))
+            compile_s = None
+            if struct not in compiled:
+                with CompileTimer() as ct:
+                    np.asarray(fn(sf.scene, jax.random.key(999), jnp.arange(L, dtype=jnp.uint32), options))
+                compiled.add(struct)
+                compile_s = ct.seconds
+            imgs, elapsed = [], 0.0
+            for c in range(n_calls):
+                ids = jnp.arange(c * L, (c + 1) * L, dtype=jnp.uint32)
+                t0 = time.perf_counter()
+                imgs.append(np.asarray(fn(sf.scene, key, ids, options), np.float64))
+                elapsed += time.perf_counter() - t0
+            per_depth[d] = {"layers": np.concatenate(imgs), "time_per_spp_s": elapsed / spp, "compile_s": compile_s}
+            log(f"  {name} max_depth {d:3d}: {1e3 * elapsed / spp:7.0f} ms/spp at {cfg.depth_size}x{cfg.depth_size}"
+                + (f" (compile {compile_s:.1f} s)" if compile_s is not None else ""))
+        ref_layers = per_depth[ref_depth]["layers"]  # (spp, n_pix, 3)
+        mean_ref = float(ref_layers.mean())
+        per_path = ref_layers.sum(-1)
+        largest_share = float(per_path.max() / per_path.sum()) if per_path.sum() > 0 else 0.0
+        h = spp // 2
+        rows = []
+        for d in depths:
+            lay = per_depth[d]["layers"]
+            diff = ref_layers - lay  # per sample: the contribution of segments d+1 .. ref_depth (the same paths)
+            m, se = mean_and_se(diff.reshape(spp, -1).mean(1))
+            da, db = diff[:h].mean(0), diff[h:].mean(0)
+            b2 = float(np.mean(da * db))
+            noise = float(np.sqrt(np.mean((da - db) ** 2)) / 2)
+            rows.append({
+                "depth": d, "is_reference": d == ref_depth, "mean": float(lay.mean()),
+                "rel_mean_bias": m / mean_ref, "rel_mean_bias_se": se / mean_ref,
+                "rel_pixel_bias": math.sqrt(max(b2, 0.0)) / mean_ref, "rel_pixel_noise": noise / mean_ref,
+                "time_per_spp_s": per_depth[d]["time_per_spp_s"],
+                "paths_per_s": n_pix / per_depth[d]["time_per_spp_s"],
+                "compile_s": per_depth[d]["compile_s"],
+            })
+        sf = load(name, cfg.depth_size)
+        out["scenes"][name] = {"sigma_t": sf.data["medium"]["sigma_t"] if sf.data.get("medium") else 0.0,
+                               "ref_depth": ref_depth, "mean_ref": mean_ref, "rows": rows,
+                               "largest_path_share": largest_share}
+    out["max_rss_mib_after"] = max_rss_mib()
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------- mitsuba
+def run_mitsuba(name: str, size: int, spp: int, chunks: int, workdir: Path, python: str = sys.executable,
+                env: dict | None = None, timeout: float = 1800) -> dict:
+    """Render the scene in Mitsuba 3 in a subprocess (`jaxfog.bench_mitsuba`): the images, times, memory; or
+    `{"skipped": reason}` when Mitsuba (or its LLVM backend) is not there."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    out = workdir / f"mitsuba_{name}_{size}.npz"
+    if out.exists():
+        out.unlink()
+    cmd = [python, "-m", "jaxfog.bench_mitsuba", str(scene_path(name)), "--set", f"camera.width={size}",
+           "--set", f"camera.height={size}", "--spp", str(spp), "--chunks", str(chunks), "--out", str(out), "--quiet"]
+    env = dict(os.environ if env is None else env)
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parent.parent)]
+                                        + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"skipped": f"Mitsuba did not finish within {timeout:.0f} s"}
+    if p.returncode != 0 or not out.exists():
+        lines = [x for x in (p.stderr or "").strip().splitlines() if x.strip()]
+        reason = lines[-1] if lines else f"exit code {p.returncode}"
+        return {"skipped": reason.replace("mitsuba skipped: ", "")}
+    z = np.load(out)
+    res = {k: z[k] for k in z.files}
+    out.unlink()
+    return res
+
+
+def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir: Path, log=print, **kw) -> dict:
+    """Means within standard errors (whole image, 4 x 4 regions, orientation) and the time-to-equal-error ratio."""
+    mr = run_mitsuba(name, cfg.size, cfg.mitsuba_spp, cfg.mitsuba_chunks, workdir, **kw)
+    if "skipped" in mr:
+        return {"scene": name, "skipped": mr["skipped"]}
+    imgs = mr["images"].astype(np.float64)  # (chunks, H, W, 3)
+    times = mr["times"]
+    n, spp = imgs.shape[0], int(mr["spp"])
+    mi_mean, mi_se = mean_and_se(imgs.reshape(n, -1).mean(1))
+    jf_mean, jf_se = ref["mean"], ref["mean_se"]
+    z = (jf_mean - mi_mean) / math.hypot(jf_se, mi_se)
+
+    # regions: 4 x 4 block means with standard errors over chunks; also against flipped Mitsuba images
+    mb = np.stack([block_means(x) for x in imgs])  # (chunks, 4, 4)
+    jb = np.stack([block_means(x) for x in ref["chunks"]])
+    mi_b, mi_bse = mb.mean(0), mb.std(0, ddof=1) / math.sqrt(n)
+    jf_b, jf_bse = jb.mean(0), jb.std(0, ddof=1) / math.sqrt(jb.shape[0])
+
+    def zs(mi_blocks, mi_se_blocks):
+        return (jf_b - mi_blocks) / np.sqrt(jf_bse ** 2 + mi_se_blocks ** 2 + 1e-30)
+
+    orient = {}
+    for label, f in (("as is", lambda a: a), ("left-right flipped", lambda a: a[:, ::-1]),
+                     ("up-down flipped", lambda a: a[::-1, :])):
+        zz = zs(f(mi_b), f(mi_bse))
+        orient[label] = {"chi2_per_block": float(np.mean(zz ** 2)), "max_abs_z": float(np.max(np.abs(zz)))}
+    z_blocks = zs(mi_b, mi_bse)
+
+    def halves(img):
+        g = np.asarray(img, np.float64).mean(-1)
+        H, W = g.shape
+        return {"left": g[:, : W // 2].mean(), "right": g[:, W // 2:].mean(), "top": g[: H // 2].mean(),
+                "bottom": g[H // 2:].mean()}
+
+    mi_img = imgs.mean(0)
+    # RMSE against the shared reference: running averages, and the average MSE of independent 64-spp images
+    levels, elapsed, acc = [], 0.0, np.zeros_like(imgs[0])
+    k = 1
+    for i in range(n):
+        acc += imgs[i]
+        elapsed += float(times[i])
+        if i + 1 == k or i + 1 == n:
+            raw = rmse(acc / (i + 1), ref["image"])
+            corr = corrected_rmse(raw, ref["rmse"])
+            levels.append({"spp": spp * (i + 1), "time_s": elapsed, "rmse": raw, "rmse_corrected": corr,
+                           "rel_rmse_corrected": corr / ref["mean"]})
+            k *= 2
+    group = max(1, 64 // spp)
+    n_groups = n // group
+    mse64 = [rmse(imgs[g * group:(g + 1) * group].mean(0), ref["image"]) ** 2 for g in range(n_groups)]
+    rmse64_raw = math.sqrt(float(np.mean(mse64))) if mse64 else float("nan")
+    rmse64 = corrected_rmse(rmse64_raw, ref["rmse"])
+    rmse64_median = corrected_rmse(math.sqrt(float(np.median(mse64))), ref["rmse"]) if mse64 else float("nan")
+    t_per_spp = float(np.mean(times)) / spp
+    t_mi = 64 * t_per_spp
+    res = {
+        "scene": name, "version": str(mr["version"]), "variant": str(mr["variant"]), "threads": int(mr["threads"]),
+        "spp_per_render": spp, "renders": n, "total_spp": n * spp, "warmup_s": float(mr["warmup_s"]),
+        "time_per_spp_s": t_per_spp, "paths_per_s": cfg.size ** 2 / t_per_spp, "max_rss_mib": float(mr["max_rss_mib"]),
+        "mean": mi_mean, "mean_se": mi_se, "jaxfog_mean": jf_mean, "jaxfog_mean_se": jf_se,
+        "jaxfog_mean_source": f"reference, {ref['spp']} spp", "z_mean": z, "means_agree": bool(abs(z) < 3.0),
+        "z_blocks": z_blocks.tolist(), "max_abs_z_block": float(np.max(np.abs(z_blocks))),
+        "blocks_jaxfog": jf_b.tolist(), "blocks_mitsuba": mi_b.tolist(), "orientation": orient,
+        "best_orientation": min(orient, key=lambda x: orient[x]["chi2_per_block"]),
+        "halves_jaxfog": halves(ref["image"]), "halves_mitsuba": halves(mi_img),
+        "levels": levels, "rmse64": rmse64_raw, "rmse64_corrected": rmse64, "rel_rmse64_corrected": rmse64 / ref["mean"],
+        "rmse64_from_images": n_groups, "time64_s": t_mi, "rmse64_corrected_median": rmse64_median,
+        "rel_rmse64_per_image": [corrected_rmse(math.sqrt(x), ref["rmse"]) / ref["mean"] for x in mse64],
+        "rel_rmse_all_corrected": corrected_rmse(rmse(mi_img, ref["image"]), ref["rmse"]) / ref["mean"],
+    }
+    ratios = {}
+    for sname, s in jax_result["strategies"].items():
+        lv = s["levels"]
+        t, how = time_to_rmse([x["time_s"] for x in lv], [x["rmse_corrected"] for x in lv], rmse64)
+        t_med, how_med = time_to_rmse([x["time_s"] for x in lv], [x["rmse_corrected"] for x in lv], rmse64_median)
+        ratios[sname] = {"time_s": t, "how": how, "ratio_jaxfog_over_mitsuba": t / t_mi,
+                         "time_s_median_target": t_med, "how_median_target": how_med,
+                         "ratio_median_target": t_med / t_mi}
+    res["time_to_mitsuba64"] = ratios
+    return res
+
+
+# ====================================================================================================== output
+def _fmt_ms(s: float) -> str:
+    return f"{1e3 * s:.0f}"
+
+
+def format_tables(result: dict) -> str:
+    lines = []
+    for name, sc in result.get("scenes", {}).items():
+        ref = sc["reference"]
+        lines.append("")
+        lines.append(f"== {name} ({sc['width']}x{sc['height']}, max_depth {sc['max_depth']}); reference: default strategy, "
+                     f"{ref['spp']} spp, mean pixel {ref['mean']:.4g} +- {ref['mean_se']:.2g}, its own RMSE "
+                     f"{ref['rmse']:.3g} ({100 * ref['rel_rmse']:.1f}% of the mean, from its halves)")
+        spps = [x["spp"] for x in next(iter(sc["strategies"].values()))["levels"]]
+        head = (f"{'strategy':12s} {'compile s':>9s} {'ms/spp':>7s} {'kpath/s':>7s} {'XLA MiB':>7s} | "
+                + " ".join(f"{'@' + str(s):>6s} " for s in spps)
+                + f" | {'t to ' + format(100 * sc['target_rel_rmse'], '.1f') + '%':>10s} {'vs default':>10s}")
+        lines.append("relative RMSE (corrected for the reference's own noise) at each spp; time to a common RMSE")
+        lines.append(head)
+        lines.append("-" * len(head))
+        for sname, s in sc["strategies"].items():
+            mem = s.get("xla_memory") or {}
+            mem_s = f"{mem['total_mib']:.1f}" if "total_mib" in mem else "-"
+            rel = " ".join(f"{x['rel_rmse_corrected']:6.3g}" + ("!" if x.get("worst_pixel_share", 0) > ONE_PIXEL else " ")
+                           for x in s["levels"])
+            how = "*" if s["time_to_target_how"] == "extrapolated" else " "
+            shared = "+" if s.get("compiled_by", sc["scene"]) != sc["scene"] else " "
+            lines.append(f"{sname:12s} {s.get('compile_s_first', s['compile_s']):8.1f}{shared} {_fmt_ms(s['time_per_spp_s']):>7s} "
+                         f"{s['paths_per_s'] / 1e3:7.1f} {mem_s:>7s} | {rel} | {s['time_to_target_s']:9.1f}{how} "
+                         f"{s.get('time_ratio_to_default', float('nan')):10.2f}")
+        lines.append(f"(! more than {ONE_PIXEL:.0%} of the squared error in one pixel: a firefly; "
+                     "* extrapolated with RMSE ~ t^-1/2; compile = JAX trace + lower + XLA compile of the first "
+                     "compilation, + where it happened for another render of the same structure (reference, earlier "
+                     "scene) and this one reused the program)")
+    vr = result.get("variance_reduction") or {}
+    if vr:
+        lines.append("")
+        lines.append("variance reduction (MSE ratio, corrected RMSE squared): A / B")
+        for name, v in vr.items():
+            for label, r in v.items():
+                if r is None:
+                    continue
+                a = r["at_max_spp"]
+                lines.append(f"  {name:14s} {r['base']} / {r['better']}: at {a['spp']} spp {a['mse_ratio_equal_spp']:.2f} "
+                             f"(equal spp), {a['mse_ratio_equal_time']:.2f} (equal time); geometric mean over spp "
+                             f"levels {r['geomean_equal_spp']:.2f} / {r['geomean_equal_time']:.2f}")
+    dp = result.get("depth")
+    if dp:
+        lines.append("")
+        lines.append(f"== depth against bias ({dp['width']}x{dp['height']}, {dp['spp']} spp, common random numbers, "
+                     "default strategy): bias against the deepest row (reference) relative to its mean; 'pixel bias' is "
+                     "the per-pixel RMSE beyond noise, '(noise)' that estimate's own noise level")
+        head = (f"{'scene':15s} {'depth':>5s} {'mean':>9s} {'mean bias':>10s} {'+-se':>7s} {'pixel bias':>10s} "
+                f"{'(noise)':>8s} {'ms/spp':>7s} {'x ms/spp@8':>10s}")
+        lines.append(head)
+        lines.append("-" * len(head))
+        for name, s in dp["scenes"].items():
+            if s.get("largest_path_share", 0) > 0.05:
+                lines.append(f"{name}: one path of the {dp['spp']} x {dp['width']}x{dp['height']} carries "
+                             f"{100 * s['largest_path_share']:.0f}% of the reference's mean: its rows are not resolved")
+            t8 = next((r["time_per_spp_s"] for r in s["rows"] if r["depth"] == 8), None)
+            for r in s["rows"]:
+                rel_t = r["time_per_spp_s"] / t8 if t8 else float("nan")
+                lines.append(f"{name:15s} {r['depth']:5d} {r['mean']:9.4g} {100 * r['rel_mean_bias']:9.2f}% "
+                             f"{100 * r['rel_mean_bias_se']:6.2f}% {100 * r['rel_pixel_bias']:9.2f}% "
+                             f"{100 * r['rel_pixel_noise']:7.2f}% {_fmt_ms(r['time_per_spp_s']):>7s} {rel_t:10.2f}"
+                             + ("  (reference)" if r["is_reference"] else ""))
+        picks = dp.get("picks")
+        max_measured = max((r["depth"] for s in dp["scenes"].values() for r in s["rows"] if not r["is_reference"]),
+                           default=0)
+        if picks:
+            lines.append("cheapest depth within a relative error (pick_depth, metric 'pixel'):")
+            for err, per in picks.items():
+                lines.append(f"  {float(err):6.1%}: " + ", ".join(
+                    f"{n} -> {d if d is not None else 'none measured (deeper than ' + str(max_measured) + ')'}"
+                    for n, d in per.items()))
+    mt = result.get("mitsuba")
+    if mt:
+        lines.append("")
+        if "skipped" in mt:
+            lines.append(f"== Mitsuba 3: skipped ({mt['skipped']})")
+        else:
+            lines.append(f"== Mitsuba {mt['version']} ({mt['variant']}, {mt['threads']} threads, volpath) on {mt['scene']}: "
+                         f"{mt['total_spp']} spp in {mt['renders']} renders, {_fmt_ms(mt['time_per_spp_s'])} ms/spp, "
+                         f"{mt['paths_per_s'] / 1e3:.1f} kpaths/s, warm-up (kernel compile) {mt['warmup_s']:.1f} s")
+            lines.append(f"  mean pixel: jaxfog {mt['jaxfog_mean']:.5f} +- {mt['jaxfog_mean_se']:.5f} "
+                         f"({mt['jaxfog_mean_source']}), Mitsuba {mt['mean']:.5f} +- {mt['mean_se']:.5f}: "
+                         f"z = {mt['z_mean']:+.2f} -> {'agree' if mt['means_agree'] else 'DISAGREE'} (|z| < 3)")
+            lines.append(f"  4x4 regions: max |z| {mt['max_abs_z_block']:.2f}; best orientation: {mt['best_orientation']} "
+                         "(mean z^2 per region: " + ", ".join(f"{k} {v['chi2_per_block']:.2f}"
+                                                               for k, v in mt["orientation"].items()) + ")")
+            hj, hm = mt["halves_jaxfog"], mt["halves_mitsuba"]
+            lines.append("  halves (jaxfog / Mitsuba): " + ", ".join(f"{k} {hj[k]:.4f} / {hm[k]:.4f}" for k in hj))
+            lines.append(f"  Mitsuba RMSE at 64 spp (mean MSE of {mt['rmse64_from_images']} independent 64-spp images, "
+                         f"corrected): {mt['rmse64_corrected']:.4f} ({100 * mt['rel_rmse64_corrected']:.1f}% of the mean; "
+                         f"median image {100 * mt['rmse64_corrected_median'] / mt['jaxfog_mean']:.1f}%; per image "
+                         + " ".join(f"{100 * x:.0f}%" for x in mt["rel_rmse64_per_image"])
+                         + f"), time for 64 spp {mt['time64_s']:.2f} s")
+            for sname, r in mt["time_to_mitsuba64"].items():
+                lines.append(f"  jaxfog {sname:12s} reaches it in {r['time_s']:7.2f} s ({r['how']}): time-to-equal-error "
+                             f"ratio jaxfog / Mitsuba = {r['ratio_jaxfog_over_mitsuba']:.3f} (median-image target: "
+                             f"{r['ratio_median_target']:.3f}, {r['how_median_target']})")
+    mem = result.get("memory")
+    if mem:
+        lines.append("")
+        lines.append("peak memory: " + "; ".join(f"{k} {v:.0f} MiB" for k, v in mem.items() if isinstance(v, (int, float))))
+    return "\n".join(lines)
+
+
+def plot_strategies(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = result["scenes"]
+    n = len(scenes)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.6), squeeze=False)
+    mt = result.get("mitsuba") or {}
+    for ax, (name, sc) in zip(axes[0], scenes.items()):
+        for sname, s in sc["strategies"].items():
+            lv = [x for x in s["levels"] if x["rel_rmse_corrected"] > 0]
+            ax.loglog([x["time_s"] for x in lv], [x["rel_rmse_corrected"] for x in lv], "o-", ms=3, label=sname)
+        if mt.get("scene") == name and "levels" in mt:
+            lv = [x for x in mt["levels"] if x["rel_rmse_corrected"] > 0]
+            ax.loglog([x["time_s"] for x in lv], [x["rel_rmse_corrected"] for x in lv], "k^--", ms=3,
+                      label=f"Mitsuba {mt['version']}")
+        ax.axhline(sc["reference"]["rel_rmse"], color="grey", ls=":", lw=1, label="reference's own RMSE")
+        ax.set_title(f"{name} ({sc['width']}x{sc['height']})", fontsize=9)
+        ax.set_xlabel("wall time after compilation (s)", fontsize=8)
+        ax.grid(True, which="both", lw=0.3)
+        ax.tick_params(labelsize=7)
+    axes[0][0].set_ylabel("per-pixel RMSE / mean pixel", fontsize=8)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def plot_depth(depth: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(8.4, 3.4))
+    for name, s in depth["scenes"].items():
+        rows = [r for r in s["rows"] if not r["is_reference"]]
+        d = [r["depth"] for r in rows]
+        a1.semilogy(d, [max(r["rel_pixel_bias"], 1e-5) for r in rows], "o-", ms=3, label=f"{name} per-pixel")
+        a1.semilogy(d, [max(abs(r["rel_mean_bias"]), 1e-5) for r in rows], "x--", ms=4, label=f"{name} mean")
+        a2.plot([r["depth"] for r in s["rows"]], [1e3 * r["time_per_spp_s"] for r in s["rows"]], "o-", ms=3, label=name)
+    a1.set_xscale("log", base=2)
+    a2.set_xscale("log", base=2)
+    a1.set_xlabel("max_depth", fontsize=8)
+    a2.set_xlabel("max_depth", fontsize=8)
+    a1.set_ylabel("bias / mean (vs each scene's deepest)", fontsize=8)
+    a2.set_ylabel(f"ms per spp at {depth['width']}x{depth['height']}", fontsize=8)
+    for a in (a1, a2):
+        a.grid(True, which="both", lw=0.3)
+        a.tick_params(labelsize=7)
+        a.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+def _machine() -> dict:
+    import jax
+
+    return {"platform": platform.platform(), "python": platform.python_version(), "jax": jax.__version__,
+            "devices": [str(d) for d in jax.devices()], "cpu_count": os.cpu_count(),
+            "loadavg_start": list(os.getloadavg()), "nice": os.nice(0)}
+
+
+# ========================================================================================================= CLI
+def configure(p: argparse.ArgumentParser) -> None:
+    """Adds the benchmark's arguments to `p` (used by `python -m jaxfog.bench` and `jaxfog bench`)."""
+    p.add_argument("--quick", action="store_true", help="a small, fast smoke run (16x16, few spp)")
+    p.add_argument("--out", default="bench_out", metavar="DIR",
+                   help="output folder: bench.json, PNGs, cache/ with the references (default bench_out)")
+    p.add_argument("--scenes", nargs="+", metavar="SCENE", help="benchmark scenes (names or .json paths)")
+    p.add_argument("--parts", nargs="+", choices=("strategies", "depth", "mitsuba"),
+                   help="which studies to run (default all; mitsuba needs strategies)")
+    p.add_argument("--size", type=int, metavar="N", help="image width = height of the strategy study")
+    p.add_argument("--levels", type=int, nargs="+", metavar="SPP",
+                   help="cumulative spp levels, multiples of the first (default 1 2 4 8 16 32 64)")
+    p.add_argument("--ref-spp", type=int, metavar="N", help="reference spp (default 256)")
+    p.add_argument("--strategies", nargs="+", choices=tuple(STRATEGIES), help="strategies (default all)")
+    p.add_argument("--depth-scenes", nargs="+", metavar="SCENE")
+    p.add_argument("--depths", type=int, nargs="+", metavar="D",
+                   help="depths to measure where below the reference depth (default 2 3 4 8 16 32 64)")
+    p.add_argument("--depth-ref", type=int, metavar="D",
+                   help="deep reference max_depth for every depth scene (default 32 thin, 64 spot_fog, 128 dense)")
+    p.add_argument("--depth-size", type=int, metavar="N", help="image size of the depth study (default 64)")
+    p.add_argument("--depth-spp", type=int, metavar="N", help="spp of the depth study (default 16)")
+    p.add_argument("--mitsuba-chunks", type=int, metavar="N", help="Mitsuba renders of --mitsuba-spp each (default 64)")
+    p.add_argument("--mitsuba-spp", type=int, metavar="N", help="spp of one Mitsuba render (default 16)")
+    p.add_argument("--max-bias", type=float, nargs="+", metavar="E", default=[0.01, 0.03, 0.1],
+                   help="relative errors for which the cheapest depth is picked (default 0.01 0.03 0.1)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--fresh-ref", action="store_true", help="re-render references even if cached")
+    p.add_argument("--no-plots", action="store_true")
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    cfg = dataclasses.replace(QUICK if args.quick else FULL)
+    pairs = {"scenes": args.scenes, "parts": args.parts, "size": args.size, "levels": args.levels,
+             "ref_spp": args.ref_spp, "strategies": args.strategies, "depth_scenes": args.depth_scenes,
+             "depths": args.depths, "depth_size": args.depth_size,
+             "depth_spp": args.depth_spp, "mitsuba_chunks": args.mitsuba_chunks, "mitsuba_spp": args.mitsuba_spp}
+    for k, v in pairs.items():
+        if v is not None:
+            setattr(cfg, k, tuple(v) if isinstance(v, list) else v)
+    cfg.seed = args.seed
+    if args.depth_ref is not None:
+        cfg.depth_refs = (args.depth_ref,) * len(cfg.depth_scenes)
+    elif len(cfg.depth_refs) != len(cfg.depth_scenes):
+        cfg.depth_refs = (max(cfg.depth_refs),) * len(cfg.depth_scenes)
+    lv = list(cfg.levels)
+    if lv != sorted(set(lv)) or lv[0] < 1 or any(x % lv[0] for x in lv):
+        raise ValueError(f"--levels must be increasing multiples of the first, got {lv}")
+    if cfg.ref_spp % cfg.ref_chunks or (cfg.ref_spp // cfg.ref_chunks) % lv[0]:
+        raise ValueError(f"--ref-spp must be a multiple of {cfg.ref_chunks * lv[0]}, got {cfg.ref_spp}")
+    if min(cfg.depths) < 1 or min(cfg.depth_refs) < 2:
+        raise ValueError("--depths must be >= 1 and --depth-ref >= 2")
+    for name in set(cfg.scenes) | set(cfg.depth_scenes):
+        if not scene_path(name).exists():
+            raise ValueError(f"no scene {name!r} ({scene_path(name)})")
+    return cfg
+
+
+def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.01,), plots: bool = True,
+                  log=print) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    cache = out / "cache"
+    result: dict = {"schema": 1, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": _machine(),
+                    "config": dataclasses.asdict(cfg),
+                    "memory_method": "xla_memory: compiled memory_analysis() of one render batch (argument + output + "
+                                     "temporary buffers); max_rss: peak resident set size of the process "
+                                     "(resource.getrusage ru_maxrss), Mitsuba's in its own subprocess"}
+    t_start = time.perf_counter()
+    refs, compiled = {}, {}
+    if "strategies" in cfg.parts:
+        result["scenes"] = {}
+        for name in cfg.scenes:
+            res, ref = bench_scene(name, cfg, cache, fresh_ref=fresh_ref, log=log, compiled=compiled)
+            result["scenes"][res["scene"]] = res
+            refs[res["scene"]] = ref
+        result["variance_reduction"] = {}
+        for name, res in result["scenes"].items():
+            result["variance_reduction"][name] = {
+                "equiangular": variance_reduction(res, "free_flight", "equiangular"),
+                "all": variance_reduction(res, "free_flight", "default"),
+            }
+    if "depth" in cfg.parts:
+        log(f"depth study: {cfg.depth_scenes}, depths {cfg.depths} against {cfg.depth_refs}")
+        result["depth"] = depth_study(cfg, log=log)
+        result["depth"]["picks"] = {
+            str(e): {n: pick_depth(s, e) for n, s in result["depth"]["scenes"].items()} for e in max_bias}
+    if "mitsuba" in cfg.parts:
+        name = cfg.mitsuba_scene
+        if name in refs:
+            log(f"Mitsuba 3 on {name}: {cfg.mitsuba_chunks} renders of {cfg.mitsuba_spp} spp")
+            result["mitsuba"] = mitsuba_compare(name, cfg, refs[name], result["scenes"][name], cache, log=log)
+        else:
+            result["mitsuba"] = {"scene": name, "skipped": f"{name} is not among the benchmark scenes of this run"}
+    result["memory"] = {"jaxfog process max_rss": max_rss_mib()}
+    mt = result.get("mitsuba") or {}
+    if "max_rss_mib" in mt:
+        result["memory"]["Mitsuba process max_rss"] = mt["max_rss_mib"]
+    for name, sc in (result.get("scenes") or {}).items():
+        result["memory"][f"XLA batch {name} (max over strategies)"] = max(
+            (s["xla_memory"] or {}).get("total_mib", 0.0) for s in sc["strategies"].values())
+    result["machine"]["loadavg_end"] = list(os.getloadavg())
+    result["total_wall_s"] = time.perf_counter() - t_start
+    tmp = out / "bench.json.tmp"
+    tmp.write_text(json.dumps(result, indent=1, default=_json_default))
+    os.replace(tmp, out / "bench.json")
+    if plots:
+        if result.get("scenes"):
+            plot_strategies(result, out / "rmse_vs_time.png")
+        if result.get("depth"):
+            plot_depth(result["depth"], out / "depth_bias.png")
+    return result
+
+
+def run(args: argparse.Namespace) -> int:
+    """Runs the benchmark from parsed arguments; prints the tables; returns the exit code."""
+    try:
+        cfg = config_from_args(args)
+    except ValueError as e:
+        print(f"jaxfog bench: error: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    result = run_benchmark(cfg, out, fresh_ref=args.fresh_ref, max_bias=tuple(args.max_bias),
+                           plots=not args.no_plots, log=log)
+    print(format_tables(result))
+    print(f"\nwrote {out / 'bench.json'}" + ("" if args.no_plots else " and PNGs")
+          + f" in {result['total_wall_s']:.0f} s (load average {result['machine']['loadavg_start'][0]:.1f} at start, "
+            f"{result['machine']['loadavg_end'][0]:.1f} at end)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m jaxfog.bench", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    configure(p)
+    return run(p.parse_args(argv))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

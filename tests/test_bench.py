@@ -1,0 +1,204 @@
+"""The benchmark's statistics and plumbing (jaxfog.bench, jaxfog.bench_mitsuba), with a fake renderer and a fake clock:
+no test here times anything real. The end-to-end `--quick` run is marked slow (it compiles several programs)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxfog import bench
+from jaxfog.bench_mitsuba import rectangle_matrix
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+# ----------------------------------------------------------------------------------------------------- statistics
+def test_time_to_rmse_interpolates_and_extrapolates_on_an_inverse_sqrt_curve():
+    t = np.array([1.0, 2.0, 4.0, 8.0])
+    r = 0.8 / np.sqrt(t)
+    for target_t in (1.5, 3.0, 7.0):  # between points: log-log interpolation is exact on a power law
+        got, how = bench.time_to_rmse(t, r, 0.8 / math.sqrt(target_t))
+        assert how == "interpolated" and got == pytest.approx(target_t, rel=1e-9)
+    for target_t in (0.25, 32.0):  # outside: extrapolated with slope -1/2, also exact here
+        got, how = bench.time_to_rmse(t, r, 0.8 / math.sqrt(target_t))
+        assert how == "extrapolated" and got == pytest.approx(target_t, rel=1e-9)
+
+
+def test_time_to_rmse_takes_the_first_crossing_of_a_noisy_curve():
+    got, how = bench.time_to_rmse([1, 2, 4, 8], [1.0, 0.4, 0.6, 0.3], 0.5)
+    assert how == "interpolated" and 1 < got < 2
+
+
+def test_reference_rmse_from_halves_and_the_correction():
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.5, 1.5, (64, 64, 3))
+    sigma = 0.3  # per-pixel standard deviation of one half
+    a = truth + sigma * rng.standard_normal(truth.shape)
+    b = truth + sigma * rng.standard_normal(truth.shape)
+    ref = (a + b) / 2
+    r_ref = bench.reference_rmse(a, b)
+    assert r_ref == pytest.approx(sigma / math.sqrt(2), rel=0.03)  # the average of the halves
+    assert bench.rmse(ref, truth) == pytest.approx(r_ref, rel=0.03)
+    x = truth + 0.5 * rng.standard_normal(truth.shape)  # an independent image with RMSE 0.5 against the truth
+    raw = bench.rmse(x, ref)
+    assert raw > 0.52  # against the noisy reference it looks worse ...
+    assert bench.corrected_rmse(raw, r_ref) == pytest.approx(0.5, rel=0.03)  # ... the correction removes that
+
+
+def test_block_means_orientation():
+    img = np.zeros((8, 8, 3))
+    img[:4, 6:] = 1.0  # top right
+    bm = bench.block_means(img, 4)
+    assert bm[0, 3] == 1.0 and bm[1, 3] == 1.0 and bm[3, 0] == 0.0 and bm.sum() == 2.0
+
+
+# ------------------------------------------------------------------------------ strategy study with a fake renderer
+class FakeClock:
+    def __init__(self):
+        self.now = 1.0
+
+    def __call__(self):
+        return self.now
+
+
+def fake_renderer(truth, clock, costs, sigmas):
+    """`render_fn` whose image is `truth` plus Gaussian noise `sigma / sqrt(spp)` and which takes `cost * spp`
+    fake seconds; the strategy is identified by `light_lobe` (an index into costs/sigmas)."""
+
+    def fn(scene, seed, spp, **strategy):
+        i = int(strategy["light_lobe"])
+        clock.now += costs[i] * spp
+        rng = np.random.default_rng(seed)
+        return truth + sigmas[i] / math.sqrt(spp) * rng.standard_normal(truth.shape)
+
+    return fn
+
+
+def test_measure_strategy_and_ratios_with_a_fake_renderer():
+    rng = np.random.default_rng(1)
+    truth = rng.uniform(0.5, 1.5, (48, 48, 3))
+    clock = FakeClock()
+    costs, sigmas = (1.0, 2.0), (2.0, 1.0)  # strategy 1: twice the cost, half the noise -> twice as efficient
+    fn = fake_renderer(truth, clock, costs, sigmas)
+    ref_sigma = 0.05
+    ref = truth + ref_sigma * rng.standard_normal(truth.shape)
+    levels = (4, 8, 16, 32)
+    res = {"reference": {"mean": float(truth.mean())}, "strategies": {}}
+    for name, idx in (("free_flight", 0), ("default", 1)):
+        m = bench.measure_strategy(None, fn, {"light_lobe": idx}, levels, seed=idx + 1, reference=ref,
+                                   ref_rmse=ref_sigma, mean_ref=float(truth.mean()), clock=clock)
+        assert [x["spp"] for x in m["levels"]] == list(levels)
+        assert m["time_per_spp_s"] == pytest.approx(costs[idx])  # the warm-up render is not counted
+        assert m["warmup_s"] == pytest.approx(costs[idx] * levels[0])
+        for x in m["levels"]:
+            assert x["time_s"] == pytest.approx(costs[idx] * x["spp"])
+            assert x["rmse_corrected"] == pytest.approx(sigmas[idx] / math.sqrt(x["spp"]), rel=0.05)
+        res["strategies"][name] = m
+    bench.summarize_scene(res)
+    # time to a common RMSE scales like sigma^2 * cost: 4 vs 2
+    assert res["strategies"]["free_flight"]["time_ratio_to_default"] == pytest.approx(2.0, rel=0.1)
+    vr = bench.variance_reduction(res, "free_flight", "default")
+    assert vr["geomean_equal_spp"] == pytest.approx(4.0, rel=0.1)
+    assert vr["geomean_equal_time"] == pytest.approx(2.0, rel=0.1)
+    text = bench.format_tables({"scenes": {"fake": {**res, "width": 48, "height": 48, "max_depth": 8, "scene": "fake",
+                                                    "reference": {**res["reference"], "spp": 1, "mean_se": 0.0,
+                                                                  "rmse": ref_sigma, "rel_rmse": 0.05}}}})
+    assert "free_flight" in text and "default" in text
+
+
+# ----------------------------------------------------------------------------------------------------- pick_depth
+def _row(depth, mean_bias, se, pixel, t, ref=False):
+    return {"depth": depth, "rel_mean_bias": mean_bias, "rel_mean_bias_se": se, "rel_pixel_bias": pixel,
+            "time_per_spp_s": t, "is_reference": ref}
+
+
+TABLE = {"rows": [_row(2, 0.40, 0.01, 0.45, 1.0), _row(4, 0.05, 0.004, 0.06, 2.0), _row(8, 0.004, 0.002, 0.012, 4.0),
+                  _row(16, 0.0001, 0.001, 0.003, 8.0), _row(64, 0.0, 0.0, 0.0, 30.0, ref=True)]}
+
+
+def test_pick_depth_is_the_cheapest_depth_within_the_error():
+    assert bench.pick_depth(TABLE, 0.5) == 2
+    assert bench.pick_depth(TABLE, 0.07) == 4
+    assert bench.pick_depth(TABLE, 0.02) == 8
+    assert bench.pick_depth(TABLE, 0.02, metric="mean") == 8  # 0.004 + 2 * 0.002 <= 0.02
+    assert bench.pick_depth(TABLE, 0.009, metric="mean") == 8
+    assert bench.pick_depth(TABLE, 0.009) == 16  # the per-pixel bias of depth 8 (1.2%) is too large
+    assert bench.pick_depth(TABLE, 0.001) is None  # never the reference itself
+    with pytest.raises(ValueError):
+        bench.pick_depth(TABLE, 0.0)
+
+
+# ------------------------------------------------------------------------------------------------------- Mitsuba
+def test_rectangle_matrix_maps_jaxfog_corners_and_front_normal():
+    c, u, v = np.array([0.0, 0.0, 0.0]), np.array([6.0, 0, 0]), np.array([0, 0, -6.0])  # the floor: normal +y
+    m = rectangle_matrix(c, u, v)
+    for su, sv in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        p = m @ np.array([su, sv, 0.0, 1.0])
+        np.testing.assert_allclose(p[:3], c + su * u / 2 + sv * v / 2)
+    n = np.linalg.inv(m[:3, :3]).T @ np.array([0, 0, 1.0])  # normals transform by the inverse transpose
+    np.testing.assert_allclose(n / np.linalg.norm(n), [0, 1, 0], atol=1e-12)
+
+
+def test_missing_mitsuba_is_reported_as_skipped(tmp_path):
+    fake = tmp_path / "fakepkgs" / "mitsuba"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ImportError('no mitsuba here')\n")
+    env = dict(os.environ, PYTHONPATH=str(tmp_path / "fakepkgs"))
+    res = bench.run_mitsuba("spot_fog", 8, 4, 1, tmp_path / "work", env=env, timeout=120)
+    assert "skipped" in res and "no mitsuba here" in res["skipped"]
+    text = bench.format_tables({"mitsuba": {"scene": "spot_fog", "skipped": res["skipped"]}})
+    assert "Mitsuba 3: skipped" in text
+
+
+def test_mitsuba_loads_every_shipped_scene():
+    mi = pytest.importorskip("mitsuba")
+    from jaxfog import load_scene
+    from jaxfog.bench_mitsuba import import_mitsuba, scene_dict
+
+    mi, reason = import_mitsuba()
+    if mi is None:
+        pytest.skip(reason)
+    for path in sorted((REPO / "data_synthetic" / "scenes").glob("*.json")):
+        data = load_scene(path, ["camera.width=8", "camera.height=8"]).data
+        scene = mi.load_dict(scene_dict(data, mi))
+        assert len(scene.emitters()) == len(data["lights"]), path.name
+        assert [int(x) for x in scene.sensors()[0].film().size()] == [8, 8]
+
+
+# ---------------------------------------------------------------------------------------------------------- CLI
+def test_cli_has_the_bench_command_and_validates_levels():
+    from jaxfog._cli import build_parser
+
+    args = build_parser().parse_args(["bench", "--quick", "--levels", "4", "6"])
+    with pytest.raises(ValueError, match="multiples"):
+        bench.config_from_args(args)
+    args = build_parser().parse_args(["bench", "--quick", "--scenes", "no_such_scene"])
+    with pytest.raises(ValueError, match="no scene"):
+        bench.config_from_args(args)
+    cfg = bench.config_from_args(build_parser().parse_args(["bench", "--quick", "--depth-ref", "6"]))
+    assert cfg.depth_refs == (6, 6, 6) and cfg.size == 16
+
+
+@pytest.mark.slow
+def test_quick_run_end_to_end(tmp_path):
+    """`python -m jaxfog.bench --quick` (minutes: it compiles one program per strategy and depth)."""
+    out = tmp_path / "b"
+    p = subprocess.run([sys.executable, "-m", "jaxfog.bench", "--quick", "--out", str(out), "--depths", "2",
+                        "--depth-ref", "3", "--depth-scenes", "spot_fog"], capture_output=True, text=True, cwd=REPO)
+    assert p.returncode == 0, p.stderr[-2000:]
+    res = json.loads((out / "bench.json").read_text())
+    sc = res["scenes"]["spot_fog"]
+    assert set(sc["strategies"]) == set(bench.STRATEGIES)
+    assert all(s["levels"][-1]["rmse"] > 0 for s in sc["strategies"].values())
+    rows = res["depth"]["scenes"]["spot_fog"]["rows"]
+    assert [r["depth"] for r in rows] == [2, 3]
+    assert rows[0]["rel_mean_bias"] > 0  # depth 3 adds light to the same paths
+    assert (out / "rmse_vs_time.png").exists() and (out / "depth_bias.png").exists()
+    assert "Mitsuba" in p.stdout
