@@ -91,16 +91,21 @@ def make_proposal(scene: Scene, options: Options, proposal=None) -> Proposal:
 
 
 # ----------------------------------------------------------------------------------------------------------- geometry
-def intersect(pk: Packed, o, d):
-    """Nearest hit: `(t, index, normal)`; `t = inf` and index 0 on a miss. The normal is the geometric front normal."""
+def _hit_distances(pk: Packed, o, d):
+    """Hit distances (> T_MIN, else inf) of the ray `o + t d` with every shape, in global shape order; None if none."""
     ts = []
     if pk.n_spheres:
         ts.append(intersect_spheres(o, d, pk.sph_center, pk.sph_radius))
     if pk.rect_center.shape[0]:
         ts.append(intersect_rectangles(o, d, pk.rect_center, pk.rect_u, pk.rect_v, pk.rect_normal))
-    if not ts:
+    return jnp.concatenate(ts) if ts else None
+
+
+def intersect(pk: Packed, o, d):
+    """Nearest hit: `(t, index, normal)`; `t = inf` and index 0 on a miss. The normal is the geometric front normal."""
+    t_all = _hit_distances(pk, o, d)
+    if t_all is None:
         return jnp.float32(jnp.inf), jnp.int32(0), jnp.array([0.0, 0.0, 1.0], jnp.float32)
-    t_all = jnp.concatenate(ts)
     idx = jnp.argmin(t_all)
     t = t_all[idx]
     p = o + jnp.where(jnp.isfinite(t), t, 0.0) * d
@@ -115,14 +120,10 @@ def intersect(pk: Packed, o, d):
 
 def occluded(pk: Packed, o, d, dist) -> Array:
     """Whether anything blocks the segment from `o` along unit `d` before distance `dist` (slightly shortened)."""
-    ts = []
-    if pk.n_spheres:
-        ts.append(intersect_spheres(o, d, pk.sph_center, pk.sph_radius))
-    if pk.rect_center.shape[0]:
-        ts.append(intersect_rectangles(o, d, pk.rect_center, pk.rect_u, pk.rect_v, pk.rect_normal))
-    if not ts:
+    t_all = _hit_distances(pk, o, d)
+    if t_all is None:
         return jnp.bool_(False)
-    return jnp.min(jnp.concatenate(ts)) < dist * (1.0 - 1e-4)
+    return jnp.min(t_all) < dist * (1.0 - 1e-4)
 
 
 def power_heuristic(a, b):
