@@ -202,8 +202,10 @@ def equiangular_setup(light, o, d, s):
     valid = tb > ta
     ta = jnp.where(valid, ta, 0.0)
     tb = jnp.where(valid, tb, 1.0)
-    th_a = jnp.arctan2(ta - delta, D)
-    th_b = jnp.arctan2(tb - delta, D)
+    # float32(pi/2) is above pi/2, where tan flips sign: keep the angles strictly inside (-pi/2, pi/2)
+    half_pi = 1.5707962
+    th_a = jnp.clip(jnp.arctan2(ta - delta, D), -half_pi, half_pi)
+    th_b = jnp.clip(jnp.arctan2(tb - delta, D), -half_pi, half_pi)
     valid = valid & (th_b > th_a)
     return delta, D, th_a, th_b, valid
 
@@ -214,7 +216,8 @@ def safe_norm_floor(v, floor=1e-7):
 
 def equiangular_pdf(t, delta, D, th_a, th_b, valid):
     r = t - delta
-    inside = valid & (t >= jnp.tan(th_a) * D + delta) & (t <= jnp.tan(th_b) * D + delta)
+    th = jnp.arctan2(r, D)  # compare angles, not tan(theta) * D, which overflows for rays grazing the light
+    inside = valid & (th >= th_a - 1e-6) & (th <= th_b + 1e-6)
     return jnp.where(inside, D / (jnp.where(valid, th_b - th_a, 1.0) * (D * D + r * r)), 0.0)
 
 
