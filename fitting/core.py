@@ -71,8 +71,12 @@ class FitConfig:
     forward-mode Jacobian) or "bfgs" (reverse-mode gradient); `max_rounds`: re-centring rounds at most (each with a
     fresh key); the estimate is the mean of the last `repeats + 1` rounds once they show no trend, and their
     spread gives the uncertainty; `rtol`/`atol`: solver tolerances on the unconstrained parameters;
-    `max_steps` per solve; `chi2_max`: a fit whose residual exceeds this multiple of its expected noise is reported
-    as not explaining the target."""
+    `max_steps` per solve; `value_spp_factor`: the residual's value at the reference (one render per round) uses
+    this many times `spp` (the noise of a round's estimate is `J^T e` with `e` that render's noise, while the LM
+    steps, `spp` each, only need a Jacobian; 8x costs about one more LM step and cuts `Var[e]` 8x); `chi2_max`: a fit whose residual exceeds this multiple of its expected noise is reported
+    as not explaining the target; `max_gain`: the largest factor by which a round's step is scaled up to undo the
+    shrinkage by a noisy Jacobian (1 = off; `fit_views.unshrink`); `decorrelate`: LM residuals take their value at the reference from a second,
+    independent key (`Problem.offsets`; off = the plain fixed-key residual, biased by the render's noise)."""
 
     spp: int = 8
     seed: int = 0
@@ -83,6 +87,9 @@ class FitConfig:
     atol: float = 1e-5
     max_steps: int = 40
     chi2_max: float = 3.0
+    decorrelate: bool = True
+    value_spp_factor: int = 8
+    max_gain: float = 8.0
 
 
 @dataclass
@@ -137,12 +144,24 @@ class Problem:
                                      estimator=estimator, proposal=ref))
         return out
 
+    def offsets(self, y_ref, key_jac, key_val, ref):
+        """Per-view constant `c = I(y_ref; key_val) - I(y_ref; key_jac)` that turns the residual of one solve into
+        `I(y; key_jac) + c - T = [I(y; key_jac) - I(y_ref; key_jac)] + I(y_ref; key_val) - T`: the same smooth,
+        deterministic function of `y` (its Jacobian is that of the "proposal" render with `key_jac`), but its value at
+        the reference comes from an independent key. At a fixed point of the re-centring (`y = y_ref`) the normal
+        equations read `J(key_jac)^T (I(key_val) - T) = 0`, whose expectation over the two independent keys is
+        `E[J]^T (E[I] - T)`: the noise of the render no longer biases the estimate (with one key, the fit minimises
+        `|E[I] - T|^2 + Var[I]` and `Var[I]` depends strongly on g near a spot light)."""
+        a = self.images(y_ref, key_val, ref, spp=self.cfg.spp * self.cfg.value_spp_factor)
+        b = self.images(y_ref, key_jac, ref)
+        return [jax.lax.stop_gradient(x - z) for x, z in zip(a, b)]
+
     def cross_loss(self, y, args):
         """Unbiased loss for noisy renders: mean over pixels of `(A - T)(B - T)` (relative), with A and B rendered
         with two independent keys. Its expectation is the squared bias `(E[A] - T)^2` alone, whereas `(A - T)^2` also
         carries `Var[A]`, which varies with the parameters (strongly with g near a spot light) and pulls a
         least-squares fit toward parameters where the render is less noisy."""
-        key, ref = args
+        key, ref, _ = args
         ka, kb = jax.random.split(key)
         A = self.images(y, ka, ref)
         B = self.images(y, kb, ref)
@@ -153,9 +172,11 @@ class Problem:
         return loss
 
     def residuals(self, y, args):
-        key, ref = args
+        key, ref, offsets = args
         imgs = self.images(y, key, ref)
-        r = jnp.concatenate([((img - t) / s).ravel() for img, t, s in zip(imgs, self.targets, self.scales)])
+        offsets = offsets if offsets is not None else [0.0] * len(imgs)
+        r = jnp.concatenate([((img + c - t) / s).ravel()
+                             for img, c, t, s in zip(imgs, offsets, self.targets, self.scales)])
         r = r / math.sqrt(self.n)
         if self.on_eval is not None:
             jax.debug.callback(self.on_eval, y, jnp.sum(r * r))
@@ -202,10 +223,17 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         key = jax.random.fold_in(base_key, round_id)
         ref = _reference(views, from_unconstrained(names, y0))
         if cfg.solver == "lm":
-            sol = optx.least_squares(problem.residuals, solver, y0, args=(key, ref), throw=False,
+            key, key_val = jax.random.split(key)
+            if cfg.decorrelate:
+                offsets = problem.offsets(y0, key, key_val, ref)
+            else:
+                offsets = [jnp.zeros_like(t) for t in problem.targets]
+            args = (key, ref, offsets)
+            sol = optx.least_squares(problem.residuals, solver, y0, args=args, throw=False,
                                      max_steps=cfg.max_steps)
         else:
-            sol = optx.minimise(problem.cross_loss, solver, y0, args=(key, ref), throw=False,
+            args = (key, ref, None)
+            sol = optx.minimise(problem.cross_loss, solver, y0, args=args, throw=False,
                                 max_steps=cfg.max_steps)
         steps = int(sol.stats["num_steps"])
         iterations += steps
@@ -213,7 +241,43 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         if not ok:
             solve_ok = False
             messages.append(f"round {round_id}: solver did not converge ({optx.RESULTS[sol.result]}) in {steps} steps")
-        return sol.value, (key, ref)
+        y_new = sol.value
+        state["normal"] = None
+        if cfg.solver == "lm" and cfg.decorrelate and cfg.max_gain > 1.0:
+            y_new = unshrink(y0, sol.value, args, jax.random.fold_in(key_val, 1))
+        return y_new, args
+
+    def unshrink(y0, y_lm, args, key3):
+        """Undo the shrinkage of a decorrelated LM step. The step solves `J1^T J1 d = -J1^T e` with the Jacobian
+        `J1` of one key; its noise inflates `J1^T J1` by the Jacobian's variance, so the step is a fraction of the
+        step with the expected Jacobian (`E[J]^T E[J] d = -E[J]^T e`); for g near a spot light that fraction was
+        measured at 0.1-0.3 per round. `A = sym(J1^T J3)`, with `J3` from a third independent key, is an unbiased
+        estimate of `E[J]^T E[J]`; the step is scaled by `G = A^-1 J1^T J1` (eigenvalues clipped to
+        [1, max_gain]; no scaling where A is not positive definite). Also keeps `A` for the uncertainty."""
+        on_eval, problem.on_eval = problem.on_eval, None
+        try:
+            J1 = np.asarray(jax.jacfwd(problem.residuals)(y0, args), np.float64)
+            J3 = np.asarray(jax.jacfwd(problem.residuals)(y0, (key3, args[1], None)), np.float64)
+        finally:
+            problem.on_eval = on_eval
+        if not (np.all(np.isfinite(J1)) and np.all(np.isfinite(J3))):
+            log("  (step not rescaled: non-finite Jacobian)")
+            return y_lm
+        M = J1.T @ J1
+        A = 0.5 * (J1.T @ J3 + J3.T @ J1)
+        if np.any(np.linalg.eigvalsh(A) <= 0):
+            log(f"  (step not rescaled: the two-key normal matrix is not positive definite)")
+            return y_lm
+        state["normal"] = A
+        w, V = np.linalg.eig(np.linalg.solve(A, M))
+        if np.any(np.abs(w.imag) > 1e-9 * np.abs(w.real).max()):
+            return y_lm
+        w = np.clip(w.real, 1.0, cfg.max_gain)
+        G = (V.real * w) @ np.linalg.inv(V.real)
+        step = G @ (np.asarray(y_lm, np.float64) - np.asarray(y0, np.float64))
+        log(f"  step gain (eigenvalues of A^-1 J1^T J1, clipped to [1, {cfg.max_gain:g}]): "
+            + ", ".join(f"{x:.2f}" for x in w))
+        return jnp.asarray(np.asarray(y0, np.float64) + step, dtype=jnp.asarray(y0).dtype)
 
     def jacobian_se(y_hat, args):
         r = problem.residuals(y_hat, args)
@@ -221,7 +285,8 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         J, r = np.asarray(J, np.float64), np.asarray(r, np.float64)
         dof = max(r.size - len(names), 1)
         s2 = float(r @ r) / dof
-        JtJ = J.T @ J
+        # the two-key normal matrix where a round has one: J^T J of one key is inflated by the Jacobian's noise
+        JtJ = state["normal"] if state.get("normal") is not None else J.T @ J
         try:
             cov_y = s2 * np.linalg.inv(JtJ)
         except np.linalg.LinAlgError:
@@ -247,8 +312,13 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         if len(thetas) > window:
             last = np.asarray(thetas[-window:])
             noise = np.maximum(last.std(axis=0, ddof=1), se)
-            # no trend: the previous estimate sits within the window's own scatter of the window's mean
-            if np.all(np.abs(thetas[-window - 1] - last.mean(axis=0)) <= 3.0 * noise):
+            # no trend: the previous estimate sits within the window's own scatter of the window's mean, and the
+            # window's first and second halves agree within their noise (a slow drift inside the window fails this)
+            h = window // 2
+            half_gap = np.abs(last[:h].mean(axis=0) - last[h:].mean(axis=0))
+            half_tol = 2.5 * noise * math.sqrt(1.0 / h + 1.0 / (window - h))
+            if (np.all(np.abs(thetas[-window - 1] - last.mean(axis=0)) <= 3.0 * noise)
+                    and np.all(half_gap <= half_tol)):
                 converged = True
                 break
     if not converged:
@@ -260,22 +330,33 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     se_jac = np.sqrt(np.abs(np.diag(cov)))
     y_hat = to_unconstrained(names, {n: est[i] for i, n in enumerate(names)})
 
-    # ---- does the model explain the targets? residual vs the noise expected from two independent renders
+    # ---- does the model explain the targets? residual vs the noise expected from two independent renders and the
+    #      estimate's uncertainty
     k1, k2 = jax.random.split(jax.random.fold_in(base_key, 7777))
     ref = _reference(views, from_unconstrained(names, y_hat))
     spp_check = 2 * cfg.spp
-    a = problem.images(y_hat, k1, ref, estimator="detached", spp=spp_check)
+    # The residual may also hold the estimate's own uncertainty (cov_hat, in the unconstrained coordinates): its
+    # share per block is J_b cov_hat J_b^T, with J_b the Jacobian of the (pooled) render at the estimate.
+    se_final = np.asarray([max(se_jac[i], spread[i] / math.sqrt(len(estimates))) for i in range(len(names))])
+    corr0 = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
+    d_hat = jacobian_to_params(names, y_hat)
+    cov_hat = corr0 * np.outer(se_final / d_hat, se_final / d_hat)
+    cov_hat = np.where(np.isfinite(cov_hat), cov_hat, 0.0)  # unknown uncertainty: the check uses the noise alone
+    render_a = lambda yy: (lambda im: (im, im))(problem.images(yy, k1, ref, estimator="detached", spp=spp_check))
+    Ja, a = jax.jacfwd(render_a, has_aux=True)(y_hat)
     b = problem.images(y_hat, k2, ref, estimator="detached", spp=spp_check)
     chi2s = []
-    for v, ia, ib in zip(views, a, b):
+    for v, ia, ib, ja in zip(views, a, b, Ja):
         # Robust to heavy-tailed (firefly) noise: ratio of medians of squared block residuals. For a model that
         # explains the target, (mean of the two renders - target) has variance var/2 + var_target, and
         # (ia - ib)/2 has var/2, with var_target = var * spp_check / target_spp.
         blk = _block(v)
         ia, ib, t = pool(np.asarray(ia), blk), pool(np.asarray(ib), blk), pool(v.target, blk)
         factor = 1.0 + (2.0 * spp_check / v.target_spp if v.target_spp else 0.0)
+        jb = np.stack([pool(np.asarray(ja[..., i]), blk) for i in range(len(names))], axis=-1)
+        par = np.einsum("...i,ij,...j->...", jb, cov_hat, jb)
         num = np.median((0.5 * (ia + ib) - t) ** 2)
-        den = np.median(((ia - ib) / 2.0) ** 2) * factor
+        den = np.median(((ia - ib) / 2.0) ** 2) * factor + np.median(par)
         chi2s.append(float(num / max(den, 1e-30)))
     chi2 = float(max(chi2s))
     explained = chi2 <= cfg.chi2_max

@@ -75,6 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--downscale", type=int, default=2, help="fit at 1/F of the target resolution (box-pooled target; default 2)")
     p.add_argument("--rounds", type=int, default=8, help="re-centring rounds at most, each with a fresh key (default 8)")
     p.add_argument("--repeats", type=int, default=2, help="the estimate is the mean of the last REPEATS+1 rounds (default 2)")
+    p.add_argument("--residuals", choices=["decorrelated", "plain"], default="decorrelated",
+                   help="LM residuals: value at the reference from an independent key (default), or plain fixed-key "
+                        "residuals (biased toward parameters with less render noise; for comparison)")
     p.add_argument("--out", required=True, help="RESULT.json (PNG figures are written beside it)")
     p.add_argument("--quiet", action="store_true", help="no per-iteration progress")
     return p
@@ -121,7 +124,8 @@ def _run(args) -> int:
     for n in names:
         if init[n] is None:
             raise FitError(f"cannot fit {n}: the scene has no such value")
-    cfg = FitConfig(spp=args.spp, seed=args.seed, solver=args.solver, max_rounds=args.rounds, repeats=args.repeats)
+    cfg = FitConfig(spp=args.spp, seed=args.seed, solver=args.solver, max_rounds=args.rounds, repeats=args.repeats,
+                    decorrelate=args.residuals == "decorrelated")
     print(f"fitting {', '.join(names)} to {len(views)} target(s) at "
           f"{views[0].scene.camera.width}x{views[0].scene.camera.height} px, {args.spp} spp, solver {args.solver}")
     log = (lambda *_: None) if args.quiet else print
