@@ -70,7 +70,8 @@ class FitConfig:
     """How to fit. `spp`: samples per pixel of each render inside the solver; `solver`: "lm" (Levenberg–Marquardt,
     forward-mode Jacobian) or "bfgs" (reverse-mode gradient); `max_rounds`: re-centring rounds at most (each with a
     fresh key); the estimate is the mean of the last `repeats + 1` rounds once they show no trend, and their
-    spread gives the uncertainty; `rtol`/`atol`: solver tolerances on the unconstrained parameters;
+    spread gives the uncertainty; `rtol`/`atol`: solver tolerances on the unconstrained parameters (loose: a round's estimate is noisier than
+    1e-2 anyway, and the next round re-solves);
     `max_steps` per solve; `value_spp_factor`: the residual's value at the reference (one render per round) uses
     this many times `spp` (the noise of a round's estimate is `J^T e` with `e` that render's noise, while the LM
     steps, `spp` each, only need a Jacobian; 8x costs about one more LM step and cuts `Var[e]` 8x); `chi2_max`: a fit whose residual exceeds this multiple of its expected noise is reported
@@ -81,15 +82,16 @@ class FitConfig:
     spp: int = 8
     seed: int = 0
     solver: str = "lm"
-    max_rounds: int = 8
-    repeats: int = 2
-    rtol: float = 1e-3
-    atol: float = 1e-5
+    max_rounds: int = 20
+    repeats: int = 7
+    burn_in: int = 3
+    rtol: float = 1e-2
+    atol: float = 1e-3
     max_steps: int = 40
     chi2_max: float = 3.0
     decorrelate: bool = True
     value_spp_factor: int = 8
-    max_gain: float = 8.0
+    max_gain: float = 20.0
 
 
 @dataclass
@@ -252,7 +254,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         `J1` of one key; its noise inflates `J1^T J1` by the Jacobian's variance, so the step is a fraction of the
         step with the expected Jacobian (`E[J]^T E[J] d = -E[J]^T e`); for g near a spot light that fraction was
         measured at 0.1-0.3 per round. `A = sym(J1^T J3)`, with `J3` from a third independent key, is an unbiased
-        estimate of `E[J]^T E[J]`; the step is scaled by `G = A^-1 J1^T J1` (eigenvalues clipped to
+        estimate of `E[J]^T E[J]` (averaged over the rounds so far); the step is scaled by `G = A^-1 J1^T J1` (eigenvalues clipped to
         [1, max_gain]; no scaling where A is not positive definite). Also keeps `A` for the uncertainty."""
         on_eval, problem.on_eval = problem.on_eval, None
         try:
@@ -264,7 +266,11 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
             log("  (step not rescaled: non-finite Jacobian)")
             return y_lm
         M = J1.T @ J1
-        A = 0.5 * (J1.T @ J3 + J3.T @ J1)
+        # E[J]^T E[J] changes slowly with the parameters while each round's two-key estimate is noisy: average the
+        # rounds' estimates (in the unconstrained coordinates, where the rounds near the end sit close together)
+        state["A_sum"] = state.get("A_sum", 0.0) + 0.5 * (J1.T @ J3 + J3.T @ J1)
+        state["A_n"] = state.get("A_n", 0) + 1
+        A = state["A_sum"] / state["A_n"]
         if np.any(np.linalg.eigvalsh(A) <= 0):
             log(f"  (step not rescaled: the two-key normal matrix is not positive definite)")
             return y_lm
@@ -280,13 +286,15 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         return jnp.asarray(np.asarray(y0, np.float64) + step, dtype=jnp.asarray(y0).dtype)
 
     def jacobian_se(y_hat, args):
-        r = problem.residuals(y_hat, args)
-        J = jax.jacfwd(problem.residuals)(y_hat, args)
-        J, r = np.asarray(J, np.float64), np.asarray(r, np.float64)
+        r = np.asarray(problem.residuals(y_hat, args), np.float64)
         dof = max(r.size - len(names), 1)
         s2 = float(r @ r) / dof
         # the two-key normal matrix where a round has one: J^T J of one key is inflated by the Jacobian's noise
-        JtJ = state["normal"] if state.get("normal") is not None else J.T @ J
+        if state.get("normal") is not None:
+            JtJ = state["normal"]
+        else:
+            J = np.asarray(jax.jacfwd(problem.residuals)(y_hat, args), np.float64)
+            JtJ = J.T @ J
         try:
             cov_y = s2 * np.linalg.inv(JtJ)
         except np.linalg.LinAlgError:
@@ -309,7 +317,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         cov = jacobian_se(y, args)
         se = np.sqrt(np.abs(np.diag(cov)))
         log(f"round {r}: " + "  ".join(f"{n} {theta[i]:.5f} (± {se[i]:.5f} from the Jacobian)" for i, n in enumerate(names)))
-        if len(thetas) > window:
+        if len(thetas) > window + cfg.burn_in:
             last = np.asarray(thetas[-window:])
             noise = np.maximum(last.std(axis=0, ddof=1), se)
             # no trend: the previous estimate sits within the window's own scatter of the window's mean, and the

@@ -63,18 +63,30 @@ def true_values(meta: dict) -> dict:
         return {}
 
 
+def auto_downscale(width: int, height: int, min_size: int = 8) -> int:
+    """The largest factor that divides both sides and leaves at least `min_size` px a side (1 if none)."""
+    best = 1
+    for f in range(1, min(width, height) // min_size + 1):
+        if width % f == 0 and height % f == 0:
+            best = f
+    return best
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m fitting.fit", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("inputs", nargs="+", help="SCENE.json TARGET.exr [MORE_TARGETS.exr | SCENE2.json TARGET2.exr ...]")
     p.add_argument("--fit", nargs="+", default=["sigma_t", "g"], help=f"parameters to fit: {', '.join(SPECS)}")
     p.add_argument("--init", nargs="*", default=[], help="starting values, e.g. sigma_t=0.3 g=0.0 (default: the scene file's)")
-    p.add_argument("--spp", type=int, default=8, help="samples per pixel of each render inside the solver (default 8)")
+    p.add_argument("--spp", type=int, default=128, help="samples per pixel of each render inside the solver (default 128)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fit's keys (targets use other seeds)")
     p.add_argument("--solver", choices=["lm", "bfgs"], default="lm", help="Levenberg–Marquardt (default) or BFGS")
-    p.add_argument("--downscale", type=int, default=2, help="fit at 1/F of the target resolution (box-pooled target; default 2)")
-    p.add_argument("--rounds", type=int, default=8, help="re-centring rounds at most, each with a fresh key (default 8)")
-    p.add_argument("--repeats", type=int, default=2, help="the estimate is the mean of the last REPEATS+1 rounds (default 2)")
+    p.add_argument("--downscale", type=int, default=None,
+                   help="fit at 1/F of the target resolution (box-pooled target; default: the largest F that divides "
+                        "the image size and leaves at least 8 px a side: few pixels with many samples each keep "
+                        "the Jacobian's noise low, docs/fit_sweep)")
+    p.add_argument("--rounds", type=int, default=20, help="re-centring rounds at most, each with a fresh key (default 20)")
+    p.add_argument("--repeats", type=int, default=7, help="the estimate is the mean of the last REPEATS+1 rounds (default 7)")
     p.add_argument("--residuals", choices=["decorrelated", "plain"], default="decorrelated",
                    help="LM residuals: value at the reference from an independent key (default), or plain fixed-key "
                         "residuals (biased toward parameters with less render noise; for comparison)")
@@ -114,6 +126,8 @@ def _run(args) -> int:
         except Exception as e:  # noqa: BLE001 - OIIO raises plain exceptions; report them as input errors
             raise FitError(f"cannot read target {target_path!r}: {e}") from None
         spp_t = int(meta["jaxfog:spp"]) if "jaxfog:spp" in meta else None
+        if args.downscale is None:
+            args.downscale = auto_downscale(sf.scene.camera.width, sf.scene.camera.height)
         name = os.path.basename(target_path)
         views.append(make_view(sf.scene, target, name, args.downscale, spp_t))
         scenes_full.append(sf.scene)
