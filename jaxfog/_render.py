@@ -20,6 +20,12 @@ from ._scene import Scene, pack
 DEFAULT_BATCH_PATHS = 1 << 16
 """Paths traced per compiled call (a multiple of the pixel count is used); bounds memory (~1 KiB per path)."""
 
+DEFAULT_CHUNK_PATHS = 1024
+"""Paths traced together in one vectorized pass (a sample layer is traced in chunks of this many pixels, one after
+the other). A speed knob only: each path's random numbers do not depend on it. Measured on a 2-core CPU (XLA):
+1024 is ~1.4x faster per sample than a whole 128x128 layer at once; 2048 and 4096 are slower, 256 and 512 in
+between (docs/bench/PROFILE.md; re-measure with `python -m jaxfog.bench_profile` on other hardware)."""
+
 
 def layers_per_batch(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PATHS) -> int:
     """Sample layers (one sample of every pixel) per batch: as many as fit in `batch_paths`, at least 1, at most spp."""
@@ -28,8 +34,11 @@ def layers_per_batch(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PA
 
 
 @eqx.filter_jit
-def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: Array, options: Options, proposal):
-    """Sum over the given sample layers of every pixel's radiance: `(H*W, 3)`. Layers at index >= n_valid are padding."""
+def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: Array, options: Options, proposal,
+                   chunk_paths: int = DEFAULT_CHUNK_PATHS):
+    """Sum over the given sample layers of every pixel's radiance: `(H*W, 3)`. Layers at index >= n_valid are padding.
+    Each layer is traced in chunks of `chunk_paths` pixels (static); the last chunk is padded with copies of the first
+    pixels (real paths, so no NaN can reach a gradient), whose results are dropped."""
     cam = scene.camera
     H, W = cam.height, cam.width
     pk = pack(scene)
@@ -37,6 +46,10 @@ def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: A
     n_iter, K = n_iterations(scene), n_dims(scene)
     rows, cols = jnp.divmod(jnp.arange(H * W), W)
     base = jnp.stack([cols, rows], axis=-1).astype(jnp.float32)
+    n_pix = H * W
+    chunk = max(1, min(int(chunk_paths), n_pix))
+    n_chunks = -(-n_pix // chunk)
+    pad = n_chunks * chunk - n_pix
 
     def one_layer(layer_id, valid):
         k = jax.random.fold_in(key, layer_id)
@@ -48,7 +61,13 @@ def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: A
             o, d = cam.generate_ray(pixel)
             return trace_path(scene, pk, prop, options, o, d, U_p)
 
-        radiance = jax.vmap(one_path)(base + jitter, U)
+        pixels = base + jitter
+        if n_chunks == 1:
+            radiance = jax.vmap(one_path)(pixels, U)
+        else:
+            pixels = jnp.concatenate([pixels, pixels[:pad]]).reshape(n_chunks, chunk, 2)
+            U = jnp.concatenate([U, U[:pad]]).reshape(n_chunks, chunk, n_iter, K)
+            radiance = jax.lax.map(lambda xs: jax.vmap(one_path)(*xs), (pixels, U)).reshape(-1, 3)[:n_pix]
         return jnp.where(valid, radiance, 0.0)
 
     valid = jnp.arange(layer_ids.shape[0]) < n_valid
@@ -72,6 +91,7 @@ def render(
     light_lobe: float = 0.3,
     distance_mix: float = 0.3,
     batch_paths: int = DEFAULT_BATCH_PATHS,
+    chunk_paths: int = DEFAULT_CHUNK_PATHS,
     progress: Callable[[int, int], None] | None = None,
 ) -> Float[Array, "H W 3"]:
     """Render `scene` with `spp` samples per pixel: linear RGB radiance, `(height, width, 3)` float32.
@@ -87,6 +107,8 @@ def render(
       light instead of from the phase function / cosine lobe; `distance_mix`: probability of placing a path's medium
       vertex by equiangular sampling instead of free flight (needs `equiangular`). Neither is used by "reparam".
     - `batch_paths`: paths per compiled call (memory bound); `progress(done_spp, spp)` is called after each batch.
+    - `chunk_paths`: paths traced together in one vectorized pass (speed only: the image changes at float32
+      rounding level, never in distribution; default 1024, see `DEFAULT_CHUNK_PATHS`).
 
     Differentiable with `jax.grad`, `jax.jvp`, `jax.jacfwd` with respect to the scene's array fields.
     """
@@ -94,6 +116,8 @@ def render(
         raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
     if not isinstance(spp, int) or spp < 1:
         raise ValueError(f"spp must be a positive integer, got {spp!r}")
+    if not isinstance(chunk_paths, int) or chunk_paths < 1:
+        raise ValueError(f"chunk_paths must be a positive integer, got {chunk_paths!r}")
     for name, v in (("light_lobe", light_lobe), ("distance_mix", distance_mix)):
         if not 0.0 <= v < 1.0:
             raise ValueError(f"{name} must be in [0, 1), got {v!r}")
@@ -107,7 +131,7 @@ def render(
         start = i * per
         ids = jnp.arange(start, start + per, dtype=jnp.uint32)
         n_valid = jnp.int32(min(per, spp - start))
-        total = total + _render_layers(scene, key, ids, n_valid, options, proposal)
+        total = total + _render_layers(scene, key, ids, n_valid, options, proposal, chunk_paths)
         if progress is not None:
             progress(min(spp, start + per), spp)
     return (total / spp).reshape(H, W, 3)
