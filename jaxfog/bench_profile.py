@@ -1,0 +1,154 @@
+"""Where the forward renderer's time goes on the headline scene (issue 5).
+
+    python -m jaxfog.bench_profile [--quick] [--out DIR] [--scene PATH] [--spp N] [--reps N]
+
+Times `jaxfog.render(scene, key, spp)` after compiling (the first call of each configuration, compile included, is
+reported apart) for: (a) `batch_paths` (paths per compiled call); (b) `chunk_paths` (paths traced together in one
+vectorized pass; 16384 = a whole 128x128 layer at once, the renderer before issue 5); (c) feature ablations at the
+default batch: equiangular off, light_lobe 0, distance_mix 0, all three off, max_depth 2 / 4 / 8; (d) components:
+the random numbers alone (threefry uniforms of one sample layer).
+
+The machine may be shared, so configurations are interleaved (A, B, C, A, B, C, ...) and medians are compared as
+ratios to the default inside one run; never compare absolute times across runs. Writes `profile.json` to `--out`
+(default `docs/bench/profile`) and prints a table (ms per spp = one sample of every pixel of the whole image).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+import jaxfog as jf
+from jaxfog import _render
+from jaxfog._integrator import n_dims, n_iterations
+
+SCENE = "data_synthetic/scenes/spot_fog.json"
+
+
+def _configs(quick: bool):
+    """(group, name, overrides, render kwargs); the row named "default" is the reference of every ratio."""
+    rows = [("ablation", "default", [], {})]
+    if not quick:
+        rows += [("batch", f"batch_paths={b}", [], {"batch_paths": b}) for b in (4096, 16384, 65536, 262144)]
+    chunks = (16384, 1024) if quick else (16384, 4096, 2048, 1024, 512, 256)
+    rows += [("chunk", f"chunk_paths={c}", [], {"chunk_paths": c}) for c in chunks]
+    rows += [
+        ("ablation", "equiangular=False", [], {"equiangular": False}),
+        ("ablation", "light_lobe=0", [], {"light_lobe": 0.0}),
+        ("ablation", "distance_mix=0", [], {"distance_mix": 0.0}),
+        ("ablation", "all three off", [], {"equiangular": False, "light_lobe": 0.0, "distance_mix": 0.0}),
+    ]
+    depths = (2,) if quick else (2, 4, 8)
+    rows += [("depth", f"max_depth={d}", [f"integrator.max_depth={d}"], {}) for d in depths]
+    if quick:
+        rows = [r for r in rows if r[1] in ("default", "chunk_paths=16384", "chunk_paths=1024", "all three off",
+                                            "max_depth=2")]
+    return rows
+
+
+def _rng_fn(scene, spp):
+    """The random numbers `render` draws for `spp` layers (same shapes and key derivation), summed."""
+    cam = scene.camera
+    n_pix, n_iter, K = cam.width * cam.height, n_iterations(scene), n_dims(scene)
+
+    @jax.jit
+    def f(key):
+        def one(layer_id):
+            k_pix, k_path = jax.random.split(jax.random.fold_in(key, layer_id))
+            return jax.random.uniform(k_pix, (n_pix, 2)).sum() + jax.random.uniform(k_path, (n_pix, n_iter, K)).sum()
+
+        return jax.lax.map(one, jnp.arange(spp, dtype=jnp.uint32)).sum()
+
+    return f
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="few configurations, 4 spp, 2 repetitions (a smoke test)")
+    ap.add_argument("--out", default="docs/bench/profile", help="output folder (default docs/bench/profile)")
+    ap.add_argument("--scene", default=SCENE)
+    ap.add_argument("--spp", type=int, default=None, help="samples per pixel per timing (default 16; quick 4)")
+    ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; quick 2)")
+    args = ap.parse_args(argv)
+    spp = args.spp or (4 if args.quick else 16)
+    reps = args.reps or (2 if args.quick else 3)
+    key = jax.random.key(0)
+
+    rows = []
+    for group, name, overrides, kw in _configs(args.quick):
+        scene = jf.load_scene(args.scene, overrides=overrides).scene
+        rows.append({"group": group, "name": name, "overrides": overrides, "kwargs": kw, "scene": scene})
+    cam = rows[0]["scene"].camera
+    n_pix = cam.width * cam.height
+
+    # first calls: compile (+ one timed render); configurations sharing a compiled program compile once
+    t_start = time.perf_counter()
+    for r in rows:
+        t = time.perf_counter()
+        jf.render(r["scene"], key, spp, **r["kwargs"]).block_until_ready()
+        r["first_call_s"] = time.perf_counter() - t
+        r["ms_per_spp"] = []
+        print(f"  first call {r['name']:<22} {r['first_call_s']:6.1f} s", flush=True)
+    rng = _rng_fn(rows[0]["scene"], spp)
+    rng(key).block_until_ready()
+    rng_ms = []
+
+    for rep in range(reps):
+        for r in rows:
+            t = time.perf_counter()
+            jf.render(r["scene"], key, spp, **r["kwargs"]).block_until_ready()
+            r["ms_per_spp"].append((time.perf_counter() - t) / spp * 1e3)
+        t = time.perf_counter()
+        rng(key).block_until_ready()
+        rng_ms.append((time.perf_counter() - t) / spp * 1e3)
+        print(f"  repetition {rep + 1}/{reps} done ({time.perf_counter() - t_start:.0f} s)", flush=True)
+
+    ref = statistics.median(next(r for r in rows if r["name"] == "default")["ms_per_spp"])
+    out_rows = []
+    for r in rows:
+        med = statistics.median(r["ms_per_spp"])
+        run_s = med * spp / 1e3
+        out_rows.append({
+            "group": r["group"], "name": r["name"], "overrides": r["overrides"], "kwargs": r["kwargs"],
+            "layers_per_call": _render.layers_per_batch(r["scene"], spp, r["kwargs"].get("batch_paths",
+                                                                                        _render.DEFAULT_BATCH_PATHS)),
+            "ms_per_spp_median": med, "ms_per_spp": r["ms_per_spp"], "paths_per_s": n_pix / (med / 1e3),
+            "ratio_to_default": med / ref, "first_call_s": r["first_call_s"],
+            "compile_s_estimate": max(0.0, r["first_call_s"] - run_s),
+        })
+    rng_med = statistics.median(rng_ms)
+    out_rows.append({"group": "component", "name": "random numbers only", "overrides": [], "kwargs": {},
+                     "layers_per_call": spp, "ms_per_spp_median": rng_med, "ms_per_spp": rng_ms,
+                     "paths_per_s": n_pix / (rng_med / 1e3), "ratio_to_default": rng_med / ref,
+                     "first_call_s": None, "compile_s_estimate": None})
+
+    print(f"\n{args.scene}: {cam.width}x{cam.height}, {spp} spp per timing, {reps} interleaved repetitions (medians)")
+    print(f"{'group':<10} {'configuration':<22} {'layers/call':>11} {'ms/spp':>8} {'Mpaths/s':>9} {'ratio':>6}"
+          f" {'first call s':>12}")
+    for o in out_rows:
+        fc = "" if o["first_call_s"] is None else f"{o['first_call_s']:.1f}"
+        print(f"{o['group']:<10} {o['name']:<22} {o['layers_per_call']:>11} {o['ms_per_spp_median']:8.1f}"
+              f" {o['paths_per_s'] / 1e6:9.3f} {o['ratio_to_default']:6.2f} {fc:>12}")
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {"scene": args.scene, "spp_per_timing": spp, "reps": reps, "quick": args.quick,
+            "default_batch_paths": _render.DEFAULT_BATCH_PATHS, "default_chunk_paths": _render.DEFAULT_CHUNK_PATHS,
+            "jax": jax.__version__, "backend": jax.default_backend(), "cpu_count": os.cpu_count(),
+            "load_average_at_end": os.getloadavg(), "platform": platform.platform(),
+            "note": "medians of interleaved repetitions; ratios are to the 'default' row of this run only"}
+    (out / "profile.json").write_text(json.dumps({"meta": meta, "rows": out_rows}, indent=1))
+    print(f"wrote {out / 'profile.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
