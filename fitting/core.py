@@ -91,7 +91,8 @@ class FitConfig:
     chi2_max: float = 3.0
     decorrelate: bool = True
     value_spp_factor: int = 8
-    max_gain: float = 20.0
+    max_gain: float = 4.0
+    max_se: float = 0.1
 
 
 @dataclass
@@ -254,7 +255,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         `J1` of one key; its noise inflates `J1^T J1` by the Jacobian's variance, so the step is a fraction of the
         step with the expected Jacobian (`E[J]^T E[J] d = -E[J]^T e`); for g near a spot light that fraction was
         measured at 0.1-0.3 per round. `A = sym(J1^T J3)`, with `J3` from a third independent key, is an unbiased
-        estimate of `E[J]^T E[J]` (averaged over the rounds so far); the step is scaled by `G = A^-1 J1^T J1` (eigenvalues clipped to
+        estimate of `E[J]^T E[J]` (averaged over the last 5 rounds); the step is scaled by `G = A^-1 J1^T J1` (eigenvalues clipped to
         [1, max_gain]; no scaling where A is not positive definite). Also keeps `A` for the uncertainty."""
         on_eval, problem.on_eval = problem.on_eval, None
         try:
@@ -268,9 +269,8 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         M = J1.T @ J1
         # E[J]^T E[J] changes slowly with the parameters while each round's two-key estimate is noisy: average the
         # rounds' estimates (in the unconstrained coordinates, where the rounds near the end sit close together)
-        state["A_sum"] = state.get("A_sum", 0.0) + 0.5 * (J1.T @ J3 + J3.T @ J1)
-        state["A_n"] = state.get("A_n", 0) + 1
-        A = state["A_sum"] / state["A_n"]
+        state.setdefault("A_list", []).append(0.5 * (J1.T @ J3 + J3.T @ J1))
+        A = np.mean(state["A_list"][-5:], axis=0)
         if np.any(np.linalg.eigvalsh(A) <= 0):
             log(f"  (step not rescaled: the two-key normal matrix is not positive definite)")
             return y_lm
@@ -335,6 +335,16 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     estimates = thetas[-window:]
     est = np.mean(estimates, axis=0)
     spread = np.std(estimates, axis=0, ddof=1)
+    # Successive rounds start where the previous one ended, so their estimates are autocorrelated; the standard
+    # error of their mean is inflated by sqrt((1 + rho) / (1 - rho)) (AR(1), rho = lag-1 autocorrelation, in [0, 0.9]).
+    inflation = np.ones(len(names))
+    E = np.asarray(estimates)
+    if len(E) >= 4:
+        Ec = E - E.mean(axis=0)
+        rho = np.sum(Ec[1:] * Ec[:-1], axis=0) / np.maximum(np.sum(Ec * Ec, axis=0), 1e-300)
+        rho = np.clip(rho, 0.0, 0.9)
+        inflation = np.sqrt((1.0 + rho) / (1.0 - rho))
+    se_rounds = spread / math.sqrt(len(estimates)) * inflation
     se_jac = np.sqrt(np.abs(np.diag(cov)))
     y_hat = to_unconstrained(names, {n: est[i] for i, n in enumerate(names)})
 
@@ -345,7 +355,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     spp_check = 2 * cfg.spp
     # The residual may also hold the estimate's own uncertainty (cov_hat, in the unconstrained coordinates): its
     # share per block is J_b cov_hat J_b^T, with J_b the Jacobian of the (pooled) render at the estimate.
-    se_final = np.asarray([max(se_jac[i], spread[i] / math.sqrt(len(estimates))) for i in range(len(names))])
+    se_final = np.maximum(se_jac, se_rounds)
     corr0 = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
     d_hat = jacobian_to_params(names, y_hat)
     cov_hat = corr0 * np.outer(se_final / d_hat, se_final / d_hat)
@@ -380,7 +390,12 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     if at_bound:
         messages.append(f"parameters ran to the edge of their range: {at_bound}")
 
-    success = bool(solve_ok and explained and not at_bound)
+    loose = [n for i, n in enumerate(names)
+             if se_final[i] / (1.0 if n == "g" else max(abs(est[i]), 1e-12)) > cfg.max_se]
+    if loose:
+        messages.append(f"not pinned down by these targets at this budget (standard error above {cfg.max_se:g}"
+                        f"{'' if loose == ['g'] else ' relative'}): {loose}; more spp, rounds or views")
+    success = bool(solve_ok and explained and not at_bound and not loose)
     corr = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
     return FitResult(
         names=names,
@@ -390,7 +405,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         messages=messages,
         uncertainty={
             n: {"se_jacobian": float(se_jac[i]), "sd_repeats": float(spread[i]),
-                "se": float(max(se_jac[i], spread[i] / math.sqrt(len(estimates))))}
+                "se_rounds": float(se_rounds[i]), "se": float(se_final[i])}
             for i, n in enumerate(names)
         },
         iterations=iterations,

@@ -155,7 +155,8 @@ def _run(args) -> int:
     base = os.path.splitext(args.out)[0]
     from .plots import plot_convergence, plot_comparison
 
-    plot_comparison(base + ".png", views, result, truth)
+    full = [make_view(sc, t, v.name, 1, v.target_spp) for sc, t, v in zip(scenes_full, targets_full, views)]
+    plot_comparison(base + ".png", views, result, truth, full=full)
     plot_convergence(base + "_convergence.png", result, truth)
     print(f"wrote {args.out}, {base}.png, {base}_convergence.png")
     if not result.success:

@@ -23,7 +23,10 @@ def _tonemap(x, scale):
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
 
-def plot_comparison(path, views, result, truth, spp=64) -> None:
+def plot_comparison(path, views, result, truth, spp=64, full=None) -> None:
+    """Per view: target | fit | fit - target. `full`: the same views at the target's full resolution (shown instead
+    of the fit resolution: people look at images), the difference pooled to the fit's resolution (what the fit
+    compared; pooling averages the render noise)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -34,18 +37,22 @@ def plot_comparison(path, views, result, truth, spp=64) -> None:
     from .params import apply
 
     fig, axes = plt.subplots(len(views), 3, figsize=(9, 3.1 * len(views)), squeeze=False)
-    for row, v in enumerate(views):
+    from .core import pool
+
+    for row, v_fit in enumerate(views):
+        v = full[row] if full is not None else v_fit
         scene = apply(v.scene, result.params)
         img = np.asarray(jaxfog.render(scene, jax.random.key(4242), spp))
         scale = float(np.percentile(v.target, 99.5)) or 1.0
-        diff = (img - v.target).mean(axis=2)
+        f = v.target.shape[0] // v_fit.target.shape[0]
+        diff = pool(img - v.target, f).mean(axis=2)
         lim = float(np.percentile(np.abs(diff), 99)) or 1.0
         axes[row, 0].imshow(_tonemap(v.target, scale))
         axes[row, 0].set_title(f"target {v.name}", fontsize=8)
         axes[row, 1].imshow(_tonemap(img, scale))
         axes[row, 1].set_title(f"fit ({spp} spp)", fontsize=8)
         im = axes[row, 2].imshow(diff, cmap="RdBu_r", vmin=-lim, vmax=lim)
-        axes[row, 2].set_title("fit - target (mean of RGB)", fontsize=8)
+        axes[row, 2].set_title(f"fit - target (mean of RGB, {diff.shape[1]} x {diff.shape[0]} px)", fontsize=8)
         fig.colorbar(im, ax=axes[row, 2], fraction=0.046)
         for a in axes[row]:
             a.set_xticks([]); a.set_yticks([])
