@@ -84,7 +84,7 @@ class FitConfig:
     solver: str = "lm"
     max_rounds: int = 20
     repeats: int = 7
-    burn_in: int = 3
+    burn_in: int = 6
     rtol: float = 1e-2
     atol: float = 1e-3
     max_steps: int = 40
