@@ -1,6 +1,7 @@
-"""Rendering on several local devices (CPU cores exposed as JAX devices) gives the image and forward-mode derivative of one device:
-the same sample layers and random numbers, only summed in another order. Runs in fresh processes, because the
-device count is fixed when JAX starts."""
+"""Rendering on several local devices (CPU cores exposed as JAX devices) gives the image of one device: the same
+sample layers and random numbers, only summed in another order; under a transformation (here `jax.jvp`) render
+keeps to one device and gives the same derivative. Runs in fresh processes, because the device count is fixed
+when JAX starts."""
 
 from __future__ import annotations
 
