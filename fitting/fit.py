@@ -96,9 +96,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from jaxfog._devices import use_cpu_cores
-
-    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     args = build_parser().parse_args(argv)
     try:
         return _run(args)

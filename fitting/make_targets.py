@@ -35,9 +35,6 @@ VIEWS = ("spot_fog", "spot_fog_low")
 
 
 def main(argv=None) -> int:
-    from jaxfog._devices import use_cpu_cores
-
-    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     ap = argparse.ArgumentParser(prog="python -m fitting.make_targets", description=__doc__.split("\n\n")[0])
     ap.add_argument("--spp", type=int, default=256)
     ap.add_argument("--out", default="data_synthetic/targets")

@@ -80,9 +80,6 @@ def plot(rows: list[dict], path: Path) -> None:
 
 
 def main(argv=None) -> int:
-    from jaxfog._devices import use_cpu_cores
-
-    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     p = argparse.ArgumentParser(prog="python -m fitting.sweep", description=__doc__.split("\n\n")[0])
     p.add_argument("--target", choices=sorted(START), default="mid")
     p.add_argument("--settings", nargs="+", default=list(DEFAULT_SETTINGS), metavar="DOWNSCALE:SPP")

@@ -200,9 +200,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `jaxfog` console script and `python -m jaxfog`; returns the exit code."""
-    from jaxfog._devices import use_cpu_cores
-
-    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -33,7 +33,8 @@ def layers_per_batch(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PA
     return max(1, min(spp, batch_paths // n_pix))
 
 
-def _trace_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: Array, options: Options, proposal,
+@eqx.filter_jit
+def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: Array, options: Options, proposal,
                    chunk_paths: int = DEFAULT_CHUNK_PATHS):
     """Sum over the given sample layers of every pixel's radiance: `(H*W, 3)`. Layers at index >= n_valid are padding.
     Each layer is traced in chunks of `chunk_paths` pixels (static); the last chunk is padded with copies of the first
@@ -77,12 +78,6 @@ def _trace_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: Ar
 
     total, _ = jax.lax.scan(step, total, (layer_ids, valid))
     return total
-
-
-_render_layers = eqx.filter_jit(_trace_layers)
-_render_layers_pmap = eqx.filter_pmap(_trace_layers, in_axes=(None, None, 0, 0, None, None, None))
-"""`_trace_layers` on every local device at once: `layer_ids (n_dev, per_dev)`, `n_valid (n_dev,)`; scene, key and
-options are shared."""
 
 
 def render(
@@ -132,25 +127,6 @@ def render(
     n_batches = math.ceil(spp / per)
     H, W = scene.camera.height, scene.camera.width
     total = jnp.zeros((H * W, 3), jnp.float32)
-    n_dev = jax.local_device_count()
-    # Only for concrete inputs: under jit/jvp/grad (a fit, a gradient) pmap would be re-compiled at every call
-    # (measured: 137 compilations, 149 s, in a 5-round fit), while the single-device program is cached.
-    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((scene, key, proposal)))
-    if n_dev > 1 and spp > 1 and not traced:
-        # one share of every batch's layers per local device (e.g. CPU cores exposed as devices, see
-        # `use_all_cpu_cores`); the same layers, the same random numbers: only the summation order changes
-        per_dev = -(-per // n_dev)
-        per = per_dev * n_dev
-        n_batches = math.ceil(spp / per)
-        for i in range(n_batches):
-            start = i * per
-            ids = jnp.arange(start, start + per, dtype=jnp.uint32).reshape(n_dev, per_dev)
-            n_valid = jnp.asarray([min(max(spp - start - d * per_dev, 0), per_dev) for d in range(n_dev)], jnp.int32)
-            parts = _render_layers_pmap(scene, key, ids, n_valid, options, proposal, chunk_paths)
-            total = total + parts.sum(axis=0)
-            if progress is not None:
-                progress(min(spp, start + per), spp)
-        return (total / spp).reshape(H, W, 3)
     for i in range(n_batches):
         start = i * per
         ids = jnp.arange(start, start + per, dtype=jnp.uint32)

@@ -1037,9 +1037,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from jaxfog._devices import use_cpu_cores
-
-    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     p = argparse.ArgumentParser(prog="python -m jaxfog.bench", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     configure(p)

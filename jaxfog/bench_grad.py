@@ -505,9 +505,6 @@ def run_benchmark(cfg: Config, out: Path, plots: bool = True, log=print) -> dict
 
 
 def main(argv: list[str] | None = None) -> int:
-    from jaxfog._devices import use_cpu_cores
-
-    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     p = argparse.ArgumentParser(prog="python -m jaxfog.bench_grad", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="a small smoke run (a few minutes)")
