@@ -472,12 +472,7 @@ def plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o).__name__)
+from .bench import _json_default  # noqa: E402  (numpy scalars and arrays to JSON, shared with the image benchmark)
 
 
 def run_benchmark(cfg: Config, out: Path, plots: bool = True, log=print) -> dict:
