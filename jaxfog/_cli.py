@@ -82,33 +82,7 @@ def _check_output(path: str, ext: str, option: str) -> None:
         raise CliError(f"{option} {path}: directory {directory} does not exist")
 
 
-class _CompileTimer:
-    """Sums JAX's tracing, lowering and backend-compile durations (jax.monitoring events) while active."""
-
-    EVENTS = (
-        "/jax/core/compile/jaxpr_trace_duration",
-        "/jax/core/compile/jaxpr_to_mlir_module_duration",
-        "/jax/core/compile/backend_compile_duration",
-    )
-
-    def __init__(self):
-        self.seconds = 0.0
-
-    def _listener(self, event: str, duration: float, **kwargs) -> None:
-        if event in self.EVENTS:
-            self.seconds += duration
-
-    def __enter__(self):
-        import jax.monitoring
-
-        jax.monitoring.register_event_duration_secs_listener(self._listener)
-        return self
-
-    def __exit__(self, *exc):
-        import jax.monitoring
-
-        jax.monitoring.unregister_event_duration_listener(self._listener)
-        return False
+from ._measure import CompileTimer as _CompileTimer  # noqa: E402
 
 
 def _run_render(args: argparse.Namespace) -> int:

@@ -29,7 +29,7 @@ Three studies, each printed as a table, written to `DIR/bench.json` and plotted 
    Without Mitsuba the run says it was skipped.
 
 Peak memory: `memory_analysis()` of the compiled batch (XLA's argument + output + temporary buffers of one call of
-`paths_per_call` paths), and the process's peak resident set size (`resource.getrusage`, `ru_maxrss`) after each
+`paths_per_call` paths), and the process's peak resident set size (`VmHWM`, `jaxfog._measure.max_rss_mib`) after each
 study; Mitsuba's peak RSS is its subprocess's own.
 
 Timings are wall-clock on whatever else the machine is running (the load average is recorded); ratios inside one
@@ -45,7 +45,6 @@ import json
 import math
 import os
 import platform
-import resource
 import subprocess
 import sys
 import time
@@ -195,50 +194,7 @@ def pick_depth(table, rel_error: float, metric: str = "pixel") -> int | None:
 
 
 # ================================================================================================ measurement
-class CompileTimer:
-    """Sums JAX's tracing, lowering and backend-compile durations (jax.monitoring events) while active."""
-
-    EVENTS = (
-        "/jax/core/compile/jaxpr_trace_duration",
-        "/jax/core/compile/jaxpr_to_mlir_module_duration",
-        "/jax/core/compile/backend_compile_duration",
-    )
-
-    def __init__(self):
-        self.seconds = 0.0
-
-    def _listener(self, event: str, duration: float, **kwargs) -> None:
-        if event in self.EVENTS:
-            self.seconds += duration
-
-    def __enter__(self):
-        try:
-            import jax.monitoring
-
-            jax.monitoring.register_event_duration_secs_listener(self._listener)
-            self._jm = jax.monitoring
-        except ImportError:  # fake renderers in tests
-            self._jm = None
-        return self
-
-    def __exit__(self, *exc):
-        if self._jm is not None:
-            self._jm.unregister_event_duration_listener(self._listener)
-        return False
-
-
-def max_rss_mib() -> float:
-    """Peak resident set size of this process so far, in MiB: `VmHWM` of `/proc/self/status` where there is one (it
-    starts afresh at `exec`), else `getrusage(RUSAGE_SELF).ru_maxrss` (Linux keeps that one across `exec`, so a child
-    started by a big parent would report the parent's size)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+from ._measure import CompileTimer, max_rss_mib  # noqa: E402,F401  (bench_grad uses them from here too)
 
 
 RenderFn = Callable[..., np.ndarray]
@@ -961,7 +917,7 @@ def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.0
                     "config": dataclasses.asdict(cfg),
                     "memory_method": "xla_memory: compiled memory_analysis() of one render batch (argument + output + "
                                      "temporary buffers); max_rss: peak resident set size of the process "
-                                     "(resource.getrusage ru_maxrss), Mitsuba's in its own subprocess"}
+                                     "(VmHWM), Mitsuba's in its own subprocess"}
     t_start = time.perf_counter()
     refs, compiled = {}, {}
     if "strategies" in cfg.parts:

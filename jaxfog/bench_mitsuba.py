@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import sys
 import time
 
@@ -199,17 +198,7 @@ def scene_dict(data: dict, mi=None, spp: int = 16) -> dict:
     return out
 
 
-def max_rss_mib() -> float:
-    """Peak resident set size of this process, in MiB: `VmHWM` of `/proc/self/status` (it starts afresh at `exec`;
-    `ru_maxrss` does not, and would report the size of the parent that started this process), else `ru_maxrss`."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+from ._measure import max_rss_mib  # noqa: E402
 
 
 def render_chunks(data: dict, spp: int, chunks: int, seed0: int = 0, log=None) -> dict:
