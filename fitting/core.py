@@ -358,7 +358,8 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     se_final = np.maximum(se_jac, se_rounds)
     corr0 = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
     d_hat = jacobian_to_params(names, y_hat)
-    cov_hat = corr0 * np.outer(se_final / d_hat, se_final / d_hat)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a zero derivative (e.g. a black target): see below
+        cov_hat = corr0 * np.outer(se_final / d_hat, se_final / d_hat)
     cov_hat = np.where(np.isfinite(cov_hat), cov_hat, 0.0)  # unknown uncertainty: the check uses the noise alone
     render_a = lambda yy: (lambda im: (im, im))(problem.images(yy, k1, ref, estimator="detached", spp=spp_check))
     Ja, a = jax.jacfwd(render_a, has_aux=True)(y_hat)

@@ -97,6 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    from jaxfog._devices import use_cpu_cores
+
+    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     try:
         return _run(args)
     except FitError as e:

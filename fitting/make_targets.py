@@ -40,6 +40,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="data_synthetic/targets")
     ap.add_argument("--only", nargs="*", default=None, help="truth names to render (default all)")
     args = ap.parse_args(argv)
+    from jaxfog._devices import use_cpu_cores
+
+    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     os.makedirs(args.out, exist_ok=True)
     manifest_path = os.path.join(args.out, "manifest.json")
     manifest = json.load(open(manifest_path)) if os.path.exists(manifest_path) else {"targets": []}

@@ -85,6 +85,9 @@ def main(argv=None) -> int:
     p.add_argument("--settings", nargs="+", default=list(DEFAULT_SETTINGS), metavar="DOWNSCALE:SPP")
     p.add_argument("--out", default="docs/fit_sweep")
     args = p.parse_args(argv)
+    from jaxfog._devices import use_cpu_cores
+
+    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     try:
         settings = [tuple(int(x) for x in s.split(":")) for s in args.settings]
     except ValueError:

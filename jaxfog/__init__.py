@@ -7,6 +7,7 @@ Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror
 
 from ._bsdf import AbstractBSDF as AbstractBSDF, Diffuse as Diffuse, Glass as Glass, Mirror as Mirror
 from ._camera import Camera as Camera
+from ._devices import use_cpu_cores as use_cpu_cores
 from ._image import read_exr as read_exr, write_exr as write_exr, write_png as write_png
 from ._lights import (
     AbstractLight as AbstractLight,

@@ -179,6 +179,9 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2; argparse has printed the message)
         return e.code if isinstance(e.code, int) else EXIT_USAGE
+    from jaxfog._devices import use_cpu_cores
+
+    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     try:
         return args._run(args)
     except (SceneError, CliError, OSError) as e:  # expected failures; anything else is a bug: traceback

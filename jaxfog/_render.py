@@ -12,6 +12,8 @@ from typing import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._integrator import ESTIMATORS, Options, make_proposal, n_dims, n_iterations, trace_path
@@ -33,12 +35,11 @@ def layers_per_batch(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PA
     return max(1, min(spp, batch_paths // n_pix))
 
 
-@eqx.filter_jit
-def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: Array, options: Options, proposal,
-                   chunk_paths: int = DEFAULT_CHUNK_PATHS):
-    """Sum over the given sample layers of every pixel's radiance: `(H*W, 3)`. Layers at index >= n_valid are padding.
-    Each layer is traced in chunks of `chunk_paths` pixels (static); the last chunk is padded with copies of the first
-    pixels (real paths, so no NaN can reach a gradient), whose results are dropped."""
+def _trace_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, valid: Array, options: Options, proposal,
+                  chunk_paths: int = DEFAULT_CHUNK_PATHS):
+    """Sum over the given sample layers of every pixel's radiance: `(H*W, 3)`. Layers where `valid` is False are
+    padding. Each layer is traced in chunks of `chunk_paths` pixels (static); the last chunk is padded with copies of
+    the first pixels (real paths, so no NaN can reach a gradient), whose results are dropped."""
     cam = scene.camera
     H, W = cam.height, cam.width
     pk = pack(scene)
@@ -70,7 +71,6 @@ def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: A
             radiance = jax.lax.map(lambda xs: jax.vmap(one_path)(*xs), (pixels, U)).reshape(-1, 3)[:n_pix]
         return jnp.where(valid, radiance, 0.0)
 
-    valid = jnp.arange(layer_ids.shape[0]) < n_valid
     total = jnp.zeros((H * W, 3), jnp.float32)
 
     def step(acc, xs):
@@ -78,6 +78,28 @@ def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: A
 
     total, _ = jax.lax.scan(step, total, (layer_ids, valid))
     return total
+
+
+@eqx.filter_jit
+def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: Array, options: Options, proposal,
+                   chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1):
+    """`_trace_layers` over `layer_ids` (the first `n_valid` are real), split evenly across the first `n_devices`
+    local devices (static; `len(layer_ids)` must be a multiple of it): one compiled program, each device scans its
+    share of the layers, the shares are summed. The layers and their random numbers do not depend on `n_devices`;
+    only the float32 summation order does."""
+    valid = jnp.arange(layer_ids.shape[0]) < n_valid
+    if n_devices == 1:
+        return _trace_layers(scene, key, layer_ids, valid, options, proposal, chunk_paths)
+    mesh = Mesh(np.asarray(jax.local_devices()[:n_devices]), ("d",))
+    arrays, static = eqx.partition((scene, key, proposal), eqx.is_array)
+
+    def share(arrays, ids, ok):
+        sc, k, prop = eqx.combine(arrays, static)
+        return _trace_layers(sc, k, ids, ok, options, prop, chunk_paths)[None]
+
+    parts = jax.shard_map(share, mesh=mesh, in_specs=(PartitionSpec(), PartitionSpec("d"), PartitionSpec("d")),
+                          out_specs=PartitionSpec("d"), check_vma=False)(arrays, layer_ids, valid)
+    return parts.sum(axis=0)
 
 
 def render(
@@ -92,6 +114,7 @@ def render(
     distance_mix: float = 0.3,
     batch_paths: int = DEFAULT_BATCH_PATHS,
     chunk_paths: int = DEFAULT_CHUNK_PATHS,
+    devices: int | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Float[Array, "H W 3"]:
     """Render `scene` with `spp` samples per pixel: linear RGB radiance, `(height, width, 3)` float32.
@@ -109,6 +132,9 @@ def render(
     - `batch_paths`: paths per compiled call (memory bound); `progress(done_spp, spp)` is called after each batch.
     - `chunk_paths`: paths traced together in one vectorized pass (speed only: the image changes at float32
       rounding level, never in distribution; default 1024, see `DEFAULT_CHUNK_PATHS`).
+    - `devices`: how many local devices share each batch's sample layers (default: all of them; a CPU is one device
+      unless `jaxfog.use_cpu_cores()` ran before JAX started, which the command-line entry points do). The image
+      changes at float32 rounding level only.
 
     Differentiable with `jax.grad`, `jax.jvp`, `jax.jacfwd` with respect to the scene's array fields.
     """
@@ -123,7 +149,11 @@ def render(
             raise ValueError(f"{name} must be in [0, 1), got {v!r}")
     options = Options(estimator=estimator, equiangular=bool(equiangular), light_lobe=float(light_lobe),
                       distance_mix=float(distance_mix))
-    per = layers_per_batch(scene, spp, batch_paths)
+    n_dev = jax.local_device_count() if devices is None else devices
+    if not isinstance(n_dev, int) or not 1 <= n_dev <= jax.local_device_count():
+        raise ValueError(f"devices must be an integer in [1, {jax.local_device_count()}], got {devices!r}")
+    n_dev = min(n_dev, spp)  # no device without a layer to trace
+    per = -(-layers_per_batch(scene, spp, batch_paths) // n_dev) * n_dev  # whole shares per device
     n_batches = math.ceil(spp / per)
     H, W = scene.camera.height, scene.camera.width
     total = jnp.zeros((H * W, 3), jnp.float32)
@@ -131,7 +161,7 @@ def render(
         start = i * per
         ids = jnp.arange(start, start + per, dtype=jnp.uint32)
         n_valid = jnp.int32(min(per, spp - start))
-        total = total + _render_layers(scene, key, ids, n_valid, options, proposal, chunk_paths)
+        total = total + _render_layers(scene, key, ids, n_valid, options, proposal, chunk_paths, n_dev)
         if progress is not None:
             progress(min(spp, start + per), spp)
     return (total / spp).reshape(H, W, 3)

@@ -996,7 +996,11 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m jaxfog.bench", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     configure(p)
-    return run(p.parse_args(argv))
+    args = p.parse_args(argv)
+    from jaxfog._devices import use_cpu_cores
+
+    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
+    return run(args)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -509,6 +509,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--_mode", help=argparse.SUPPRESS)
     p.add_argument("--_mode-args", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    from jaxfog._devices import use_cpu_cores
+
+    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     if args._mode:
         size, spp, depth, runs = json.loads(args._mode_args)
         print(json.dumps(_mode_child(args._mode, size, spp, depth, runs), default=_json_default))

@@ -4,6 +4,8 @@ Configuration
 - The renderer is float32 by design; `jax_enable_x64` stays off. Exact references are computed with numpy/scipy in
   float64 instead.
 - `jax_numpy_rank_promotion = "raise"`: the library must not rely on implicit rank promotion (it passes with it).
+- Every CPU core is a JAX device (`jaxfog.use_cpu_cores()`), so renders split their sample layers across devices as
+  the command-line tools do (tests/test_devices.py checks that this changes nothing but float32 rounding).
 
 Statistics (used by every render test; see `assert_statistically_equal`)
 - A render estimate is checked against a reference with per-value standard errors (SE) computed from `n_keys`
@@ -32,6 +34,7 @@ import pytest
 import jaxfog as jf
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
+jf.use_cpu_cores()  # every core a JAX device, as the command-line entry points do: renders run sharded
 
 N_KEYS = 32
 """Independent renders per statistical estimate (t distribution with N_KEYS - 1 degrees of freedom)."""

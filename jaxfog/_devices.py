@@ -1,0 +1,32 @@
+"""Use every CPU core: expose them to JAX as devices, so that `render` traces its sample layers on all of them.
+
+XLA runs one render's vectorized program on a single core of the CPU (measured: CPU time = wall time,
+docs/bench/PROFILE.md). `render` splits each batch of sample layers across `jax.local_devices()` when there is more
+than one; on a CPU machine there is one device unless JAX is told otherwise before it starts. The command-line entry
+points (`jaxfog render`, `jaxfog bench`, `python -m fitting.fit`, ...) call `use_cpu_cores()` first; a Python user
+calls it right after `import jaxfog`, before any JAX computation (or sets `jax_num_cpu_devices` themselves).
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def use_cpu_cores(n: int | None = None) -> int:
+    """Ask JAX for `n` CPU devices (default: this process's CPU count, or `$JAXFOG_CPU_DEVICES`). Must run before JAX
+    initialises its backends; afterwards it changes nothing. Returns the number of local devices JAX then has."""
+    import jax
+
+    if n is None:
+        env = os.environ.get("JAXFOG_CPU_DEVICES")
+        if env:
+            n = int(env)
+        else:
+            n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if n < 1:
+        raise ValueError(f"number of CPU devices must be >= 1, got {n}")
+    try:
+        jax.config.update("jax_num_cpu_devices", int(n))
+    except RuntimeError:  # backends already initialised: keep what there is
+        pass
+    return jax.local_device_count()

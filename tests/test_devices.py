@@ -1,0 +1,45 @@
+"""Rendering on several local devices (CPU cores exposed as JAX devices) gives the image and forward-mode derivative of one device:
+the same sample layers and random numbers, only summed in another order. Runs in fresh processes, because the
+device count is fixed when JAX starts."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+
+SCRIPT = r"""
+import json, sys
+import jaxfog
+n = jaxfog.use_cpu_cores(int(sys.argv[1]))
+import jax
+sc = jaxfog.load_scene("data_synthetic/scenes/spot_fog.json",
+                       ["camera.width=16", "camera.height=16", "integrator.max_depth=4"]).scene
+f = lambda s: jaxfog.render(sc.replace_medium(sigma_t=s), jax.random.key(3), 7)  # 7 spp: uneven split
+img = f(0.5)
+val, tan = jax.jvp(lambda s: f(s).mean(), (0.5,), (1.0,))
+print(json.dumps({"devices": n, "img": img.tolist(), "jvp": float(tan)}))
+"""
+
+
+def _run(n: int) -> dict:
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    r = subprocess.run([sys.executable, "-c", SCRIPT, str(n)], cwd=REPO, capture_output=True, text=True, env=env,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_two_devices_match_one():
+    one, two = _run(1), _run(2)
+    assert one["devices"] == 1 and two["devices"] == 2
+    a, b = np.asarray(one["img"]), np.asarray(two["img"])
+    # float32 sums of 7 layers in another order: rounding only
+    np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-7)
+    assert abs(two["jvp"] - one["jvp"]) <= 1e-5 * abs(one["jvp"])
