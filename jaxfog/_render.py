@@ -152,7 +152,8 @@ def render(
     n_dev = jax.local_device_count() if devices is None else devices
     if not isinstance(n_dev, int) or not 1 <= n_dev <= jax.local_device_count():
         raise ValueError(f"devices must be an integer in [1, {jax.local_device_count()}], got {devices!r}")
-    n_dev = min(n_dev, spp)  # no device without a layer to trace
+    # Every device gets the same number of layers per batch, padded with invalid layers where needed (even at spp 1):
+    # a padding layer costs no wall time beside a real one, and a small spp compiles no program of its own.
     per = -(-layers_per_batch(scene, spp, batch_paths) // n_dev) * n_dev  # whole shares per device
     n_batches = math.ceil(spp / per)
     H, W = scene.camera.height, scene.camera.width

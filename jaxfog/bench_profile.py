@@ -6,7 +6,8 @@ Times `jaxfog.render(scene, key, spp)` after compiling (the first call of each c
 reported apart) for: (a) `batch_paths` (paths per compiled call); (b) `chunk_paths` (paths traced together in one
 vectorized pass; 16384 = a whole 128x128 layer at once, the renderer before issue 5); (c) feature ablations at the
 default batch: equiangular off, light_lobe 0, distance_mix 0, all three off, max_depth 2 / 4 / 8; (d) components:
-the random numbers alone (threefry uniforms of one sample layer).
+the random numbers alone (threefry uniforms of one sample layer); (e) with every CPU core a JAX device (the
+default of the command-line tools), the same render on one device.
 
 The machine may be shared, so configurations are interleaved (A, B, C, A, B, C, ...) and medians are compared as
 ratios to the default inside one run; never compare absolute times across runs. Writes `profile.json` to `--out`
@@ -36,6 +37,8 @@ SCENE = "data_synthetic/scenes/spot_fog.json"
 def _configs(quick: bool):
     """(group, name, overrides, render kwargs); the row named "default" is the reference of every ratio."""
     rows = [("ablation", "default", [], {})]
+    if jax.local_device_count() > 1:  # every core a device (use_cpu_cores, as the entry points do) vs one of them
+        rows += [("devices", "devices=1", [], {"devices": 1})]
     if not quick:
         rows += [("batch", f"batch_paths={b}", [], {"batch_paths": b}) for b in (4096, 16384, 65536, 262144)]
     chunks = (16384, 1024) if quick else (16384, 4096, 2048, 1024, 512, 256)
@@ -50,7 +53,7 @@ def _configs(quick: bool):
     rows += [("depth", f"max_depth={d}", [f"integrator.max_depth={d}"], {}) for d in depths]
     if quick:
         rows = [r for r in rows if r[1] in ("default", "chunk_paths=16384", "chunk_paths=1024", "all three off",
-                                            "max_depth=2")]
+                                            "max_depth=2", "devices=1")]
     return rows
 
 
@@ -78,6 +81,7 @@ def main(argv=None) -> int:
     ap.add_argument("--spp", type=int, default=None, help="samples per pixel per timing (default 16; quick 4)")
     ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; quick 2)")
     args = ap.parse_args(argv)
+    jf.use_cpu_cores()  # every CPU core a device, as the command-line entry points do (a no-op once JAX has started)
     spp = args.spp or (4 if args.quick else 16)
     reps = args.reps or (2 if args.quick else 3)
     key = jax.random.key(0)
