@@ -78,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("inputs", nargs="+", help="SCENE.json TARGET.exr [MORE_TARGETS.exr | SCENE2.json TARGET2.exr ...]")
     p.add_argument("--fit", nargs="+", default=["sigma_t", "g"], help=f"parameters to fit: {', '.join(SPECS)}")
     p.add_argument("--init", nargs="*", default=[], help="starting values, e.g. sigma_t=0.3 g=0.0 (default: the scene file's)")
-    p.add_argument("--spp", type=int, default=128, help="samples per pixel of each render inside the solver (default 128)")
+    p.add_argument("--spp", type=int, default=256, help="samples per pixel of each render inside the solver (default 256)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fit's keys (targets use other seeds)")
     p.add_argument("--solver", choices=["lm", "bfgs"], default="lm", help="Levenberg–Marquardt (default) or BFGS")
     p.add_argument("--downscale", type=int, default=None,
@@ -87,6 +87,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "the Jacobian's noise low, docs/fit_sweep)")
     p.add_argument("--rounds", type=int, default=20, help="re-centring rounds at most, each with a fresh key (default 20)")
     p.add_argument("--repeats", type=int, default=7, help="the estimate is the mean of the last REPEATS+1 rounds (default 7)")
+    p.add_argument("--value-spp-factor", type=int, default=None, metavar="K",
+                   help="each round's residual value is rendered at K x --spp (default: FitConfig's)")
+    p.add_argument("--steps", choices=["averaged", "lm"], default="averaged",
+                   help="rounds after the burn-in: one Gauss-Newton step with Jacobians averaged over rounds "
+                        "(default), or an LM solve with step gain as in the burn-in")
     p.add_argument("--residuals", choices=["decorrelated", "plain"], default="decorrelated",
                    help="LM residuals: value at the reference from an independent key (default), or plain fixed-key "
                         "residuals (biased toward parameters with less render noise; for comparison)")
@@ -114,6 +119,10 @@ def _run(args) -> int:
     init_given = parse_assignments(args.init)
     if args.spp < 1:
         raise FitError(f"--spp must be >= 1, got {args.spp}")
+    if args.value_spp_factor is not None and args.value_spp_factor < 1:
+        raise FitError(f"--value-spp-factor must be >= 1, got {args.value_spp_factor}")
+    if args.rounds < 1 or args.repeats < 1:
+        raise FitError(f"--rounds and --repeats must be >= 1, got {args.rounds} and {args.repeats}")
     if not args.out.lower().endswith(".json"):
         raise FitError(f"--out must name a .json file, got {args.out!r}")
     views, truths, scenes_full, targets_full = [], [], [], []
@@ -141,8 +150,11 @@ def _run(args) -> int:
     for n in names:
         if init[n] is None:
             raise FitError(f"cannot fit {n}: the scene has no such value")
+    extra = {} if args.value_spp_factor is None else {"value_spp_factor": args.value_spp_factor}
+    if args.steps == "lm":
+        extra["average_jacobians"] = 0
     cfg = FitConfig(spp=args.spp, seed=args.seed, solver=args.solver, max_rounds=args.rounds, repeats=args.repeats,
-                    decorrelate=args.residuals == "decorrelated")
+                    decorrelate=args.residuals == "decorrelated", **extra)
     print(f"fitting {', '.join(names)} to {len(views)} target(s) at "
           f"{views[0].scene.camera.width}x{views[0].scene.camera.height} px, {args.spp} spp, solver {args.solver}")
     log = (lambda *_: None) if args.quiet else print

@@ -373,27 +373,49 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
         eq_setups = eq_setups or None
 
         new = {}
-        # ---- medium vertex
+        p_s = state.o + jnp.where(hit, s_hit, 0.0) * state.d
         if has_medium:
             p_m = state.o + t * state.d
+        # ---- the light-angle lobe: one lobe sample and one lobe pdf at this bounce's vertex, medium or surface (the
+        #      two vertex kinds draw their directions from the same uniforms, and only one of them is used)
+        if lam > 0:
+            p_lobe = jnp.where(is_med, p_m, p_s) if has_medium else p_s
+            take_lobe = U_b[4] < lam
+            lobe_dir = lobe_sample(p_lobe, U_b)
+            wo_lobe_v = []
+            if has_medium:
+                omc0, opc0 = hg_sample(U_b[1], prop.g_hat)
+                wo_m_lobe = jnp.where(take_lobe, lobe_dir, direction_from_cos(omc0, opc0, 2.0 * PI * U_b[2], state.d))
+                wo_lobe_v.append(wo_m_lobe)
+            if DIFFUSE in kinds:
+                wo_d_cos, _ = cosine_sample(U_b[1:3], n)
+                wo_d_lobe = jnp.where(take_lobe, lobe_dir, wo_d_cos)
+                wo_lobe_v.append(wo_d_lobe)
+            wo_v = jnp.where(is_med, *wo_lobe_v) if len(wo_lobe_v) == 2 else wo_lobe_v[0] if wo_lobe_v else lobe_dir
+            lobe_p = lobe_pdf(wo_v, p_lobe)
+
+        # ---- medium vertex
+        if has_medium:
             beta_m = state.beta * w_med
 
-            omc, opc = hg_sample(U_b[1], prop.g_hat)
-            wo_m = direction_from_cos(omc, opc, 2.0 * PI * U_b[2], state.d)
-            pdf_m = hg_pdf(omc, prop.g_hat)
             if reparam:  # the direction carries d/dg; its weight p_g / p_g is 1
+                omc, opc = hg_sample(U_b[1], prop.g_hat)
+                wo_m = direction_from_cos(omc, opc, 2.0 * PI * U_b[2], state.d)
+                pdf_m = hg_pdf(omc, prop.g_hat)
                 beta_m_next = beta_m
             elif lam > 0:
-                wo_m = jnp.where(U_b[4] < lam, lobe_sample(p_m, U_b), wo_m)
+                wo_m = wo_m_lobe
                 omc = one_minus_cos_between(state.d, wo_m)
-                pdf_m = (1.0 - lam) * hg_pdf(omc, prop.g_hat) + lam * lobe_pdf(wo_m, p_m)
+                pdf_m = (1.0 - lam) * hg_pdf(omc, prop.g_hat) + lam * lobe_p
                 beta_m_next = beta_m * hg_pdf(omc, g) / pdf_m
             else:
+                omc, opc = hg_sample(U_b[1], prop.g_hat)
+                wo_m = direction_from_cos(omc, opc, 2.0 * PI * U_b[2], state.d)
+                pdf_m = hg_pdf(omc, prop.g_hat)
                 beta_m_next = beta_m * hg_pdf(omc, g) / pdf_m
             new["med"] = (p_m, wo_m, beta_m_next, pdf_m)
 
         # ---- surface vertex
-        p_s = state.o + jnp.where(hit, s_hit, 0.0) * state.d
         beta_s = state.beta * w_surf
         surf = state.alive & ~is_med & hit
         kind = jnp.asarray(pk.kinds)[idx] if pk.kinds.shape[0] else jnp.int32(-1)
@@ -419,13 +441,13 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             R = pk.reflectance[idx]
 
             surf_nee_ok = surf & is_diff & front
-            wo_d, pdf_d = cosine_sample(U_b[1:3], n)
             if lam > 0:
-                wo_d = jnp.where(U_b[4] < lam, lobe_sample(p_s, U_b), wo_d)
+                wo_d = wo_d_lobe
                 cos_o = jnp.maximum(dot(n, wo_d), 0.0)
-                pdf_d = (1.0 - lam) * cos_o * INV_PI + lam * lobe_pdf(wo_d, p_s)
+                pdf_d = (1.0 - lam) * cos_o * INV_PI + lam * lobe_p
                 beta_d = beta_s * R * safe_div(cos_o * INV_PI, pdf_d)
             else:
+                wo_d, pdf_d = cosine_sample(U_b[1:3], n)
                 beta_d = beta_s * R
             wo_s = jnp.where(is_diff, wo_d, wo_s)
             beta_s_next = jnp.where(is_diff, beta_d, beta_s_next)

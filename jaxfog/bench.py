@@ -534,15 +534,16 @@ def depth_study(cfg: Config, log=print) -> dict:
 
 # ---------------------------------------------------------------------------------------------------- mitsuba
 def run_mitsuba(name: str, size: int, spp: int, chunks: int, workdir: Path, python: str = sys.executable,
-                env: dict | None = None, timeout: float = 1800) -> dict:
-    """Render the scene in Mitsuba 3 in a subprocess (`jaxfog.bench_mitsuba`): the images, times, memory; or
-    `{"skipped": reason}` when Mitsuba (or its LLVM backend) is not there."""
+                env: dict | None = None, timeout: float = 1800, seed0: int = 0) -> dict:
+    """Render the scene in Mitsuba 3 in a subprocess (`jaxfog.bench_mitsuba`): the images (Mitsuba seeds `seed0`,
+    `seed0 + 1`, ...), times, memory; or `{"skipped": reason}` when Mitsuba (or its LLVM backend) is not there."""
     workdir.mkdir(parents=True, exist_ok=True)
     out = workdir / f"mitsuba_{name}_{size}.npz"
     if out.exists():
         out.unlink()
     cmd = [python, "-m", "jaxfog.bench_mitsuba", str(scene_path(name)), "--set", f"camera.width={size}",
-           "--set", f"camera.height={size}", "--spp", str(spp), "--chunks", str(chunks), "--out", str(out), "--quiet"]
+           "--set", f"camera.height={size}", "--spp", str(spp), "--chunks", str(chunks), "--seed", str(seed0), "--out", str(out),
+           "--quiet"]
     env = dict(os.environ if env is None else env)
     env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parent.parent)]
                                         + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
@@ -568,7 +569,8 @@ def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir
     so that the headline ratio compares the two under the same machine load (the spp jaxfog needs comes from its
     RMSE-vs-spp curve of the strategy study)."""
     t_jax_before = jax_time_per_spp() if jax_time_per_spp is not None else None
-    mr = run_mitsuba(name, cfg.size, cfg.mitsuba_spp, cfg.mitsuba_chunks, workdir, **kw)
+    # the run's --seed also draws Mitsuba's images (seeds from 1000 x seed), so repeated runs are independent
+    mr = run_mitsuba(name, cfg.size, cfg.mitsuba_spp, cfg.mitsuba_chunks, workdir, seed0=1000 * cfg.seed, **kw)
     if "skipped" in mr:
         return {"scene": name, "skipped": mr["skipped"]}
     t_jax_after = jax_time_per_spp() if jax_time_per_spp is not None else None

@@ -43,3 +43,16 @@ def test_two_devices_match_one():
     # float32 sums of 7 layers in another order: rounding only
     np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-7)
     assert abs(two["jvp"] - one["jvp"]) <= 1e-5 * abs(one["jvp"])
+
+
+def test_devices_argument_is_checked():
+    import jax
+    import pytest
+
+    import jaxfog
+
+    sc = jaxfog.load_scene(str(REPO / "data_synthetic/scenes/spot_fog.json"),
+                           ["camera.width=4", "camera.height=4"]).scene
+    for bad in (0, jax.local_device_count() + 1, 1.5):
+        with pytest.raises(ValueError, match="devices"):
+            jaxfog.render(sc, jax.random.key(0), 1, devices=bad)
