@@ -348,7 +348,8 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         except np.linalg.LinAlgError:
             cov_y = np.full((len(names), len(names)), np.inf)
         d = jacobian_to_params(names, y_hat)
-        cov = cov_y * np.outer(d, d)
+        with np.errstate(invalid="ignore"):  # inf * 0 where a parameter sits at the edge: NaN = unknown
+            cov = cov_y * np.outer(d, d)
         return cov
 
     # ---- re-centring rounds, each with a fresh key, until the last `window` estimates show no trend
@@ -407,7 +408,8 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     # The residual may also hold the estimate's own uncertainty (cov_hat, in the unconstrained coordinates): its
     # share per block is J_b cov_hat J_b^T, with J_b the Jacobian of the (pooled) render at the estimate.
     se_final = np.maximum(se_jac, se_rounds)
-    corr0 = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr0 = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
     d_hat = jacobian_to_params(names, y_hat)
     with np.errstate(divide="ignore", invalid="ignore"):  # a zero derivative (e.g. a black target): see below
         cov_hat = corr0 * np.outer(se_final / d_hat, se_final / d_hat)
@@ -443,12 +445,13 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         messages.append(f"parameters ran to the edge of their range: {at_bound}")
 
     loose = [n for i, n in enumerate(names)
-             if se_final[i] / (1.0 if n == "g" else max(abs(est[i]), 1e-12)) > cfg.max_se]
+             if not se_final[i] / (1.0 if n == "g" else max(abs(est[i]), 1e-12)) <= cfg.max_se]  # NaN: unknown
     if loose:
         messages.append(f"not pinned down by these targets at this budget (standard error above {cfg.max_se:g}"
                         f"{'' if loose == ['g'] else ' relative'}): {loose}; more spp, rounds or views")
     success = bool(solve_ok and explained and not at_bound and not loose)
-    corr = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
     return FitResult(
         names=names,
         params={n: float(est[i]) for i, n in enumerate(names)},

@@ -43,6 +43,8 @@ def target():
 def _fit(target, init, **kw):
     view = make_view(_scene(), target, "tiny", downscale=1, target_spp=512)
     # burn_in 2: this small problem starts 25% off and settles within two rounds (the default, 6, is for spot_fog)
+    # value renders at 8x (256 spp): well below the target's 512 spp, which the tolerance below assumes
+    kw = {"value_spp_factor": 8, **kw}
     cfg = FitConfig(spp=32, seed=0, max_rounds=10, repeats=2, burn_in=2, **kw)
     return fit_views([view], ["sigma_t", "g"], init, cfg, log=lambda *_: None)
 
@@ -95,6 +97,8 @@ def files(tmp_path, target):
         (["--fit", "sigma_t", "gg"], "unknown parameter 'gg'"),
         (["--fit", "sigma_t", "--init", "g=1.5"], "g=1.5: valid range"),
         (["--fit", "sigma_t", "--init", "sigma_t"], "expects name=value"),
+        (["--value-spp-factor", "0"], "--value-spp-factor must be >= 1"),
+        (["--rounds", "0"], "--rounds and --repeats must be >= 1"),
     ],
 )
 def test_bad_parameter_arguments(files, capsys, args, message):
