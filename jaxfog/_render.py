@@ -80,6 +80,13 @@ def _trace_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, valid: Arra
     return total
 
 
+def layers_per_call(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PATHS, n_devices: int = 1) -> int:
+    """Sample layers `render` traces per compiled call: `layers_per_batch` rounded up to whole shares per device.
+    Every device gets the same number (padding layers where needed, even at spp 1): a padding layer costs no wall
+    time beside a real one, and a small spp compiles no program of its own."""
+    return -(-layers_per_batch(scene, spp, batch_paths) // n_devices) * n_devices
+
+
 @eqx.filter_jit
 def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: Array, options: Options, proposal,
                    chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1):
@@ -152,9 +159,7 @@ def render(
     n_dev = jax.local_device_count() if devices is None else devices
     if not isinstance(n_dev, int) or not 1 <= n_dev <= jax.local_device_count():
         raise ValueError(f"devices must be an integer in [1, {jax.local_device_count()}], got {devices!r}")
-    # Every device gets the same number of layers per batch, padded with invalid layers where needed (even at spp 1):
-    # a padding layer costs no wall time beside a real one, and a small spp compiles no program of its own.
-    per = -(-layers_per_batch(scene, spp, batch_paths) // n_dev) * n_dev  # whole shares per device
+    per = layers_per_call(scene, spp, batch_paths, n_dev)
     n_batches = math.ceil(spp / per)
     H, W = scene.camera.height, scene.camera.width
     total = jnp.zeros((H * W, 3), jnp.float32)

@@ -313,10 +313,10 @@ def xla_memory(scene, strategy: dict, paths_per_call: int) -> dict | None:
         import jax.numpy as jnp
 
         from ._integrator import Options
-        from ._render import DEFAULT_CHUNK_PATHS, _render_layers, layers_per_batch
+        from ._render import DEFAULT_CHUNK_PATHS, _render_layers, layers_per_call
 
         n_dev = jax.local_device_count()  # as `render` splits a batch
-        per = -(-layers_per_batch(scene, 1 << 30, paths_per_call) // n_dev) * n_dev
+        per = layers_per_call(scene, 1 << 30, paths_per_call, n_dev)
         args = (scene, jax.random.key(0), jnp.arange(per, dtype=jnp.uint32), jnp.int32(per), Options(**strategy), None,
                 DEFAULT_CHUNK_PATHS, n_dev)
         ma = _render_layers.lower(*args).compile().compiled.memory_analysis()

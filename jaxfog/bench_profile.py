@@ -122,8 +122,9 @@ def main(argv=None) -> int:
         run_s = med * spp / 1e3
         out_rows.append({
             "group": r["group"], "name": r["name"], "overrides": r["overrides"], "kwargs": r["kwargs"],
-            "layers_per_call": _render.layers_per_batch(r["scene"], spp, r["kwargs"].get("batch_paths",
-                                                                                        _render.DEFAULT_BATCH_PATHS)),
+            "layers_per_call": _render.layers_per_call(
+                r["scene"], spp, r["kwargs"].get("batch_paths", _render.DEFAULT_BATCH_PATHS),
+                r["kwargs"].get("devices", jax.local_device_count())),
             "ms_per_spp_median": med, "ms_per_spp": r["ms_per_spp"], "paths_per_s": n_pix / (med / 1e3),
             "ratio_to_default": med / ref, "first_call_s": r["first_call_s"],
             "compile_s_estimate": max(0.0, r["first_call_s"] - run_s),
