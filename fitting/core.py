@@ -308,8 +308,9 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         args = (key, ref, problem.offsets(y0, key, key_val, ref))
         on_eval, problem.on_eval = problem.on_eval, None
         try:
-            e = np.asarray(problem.residuals(y0, args), np.float64)
-            J1 = np.asarray(jax.jacfwd(problem.residuals)(y0, args), np.float64)
+            # the residual comes with its Jacobian (has_aux): one render, not two
+            J1, e = jax.jacfwd(lambda yy: (lambda r: (r, r))(problem.residuals(yy, args)), has_aux=True)(y0)
+            J1, e = np.asarray(J1, np.float64), np.asarray(e, np.float64)
             J3 = np.asarray(jax.jacfwd(problem.residuals)(y0, (jax.random.fold_in(key_val, 1), ref, None)),
                             np.float64)
         finally:
@@ -450,8 +451,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         messages.append(f"not pinned down by these targets at this budget (standard error above {cfg.max_se:g}"
                         f"{'' if loose == ['g'] else ' relative'}): {loose}; more spp, rounds or views")
     success = bool(solve_ok and explained and not at_bound and not loose)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
+    corr = corr0
     return FitResult(
         names=names,
         params={n: float(est[i]) for i, n in enumerate(names)},
