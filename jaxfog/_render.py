@@ -1,12 +1,14 @@
 """Rendering: generate rays -> `vmap(trace_path)` -> average, in batches of whole sample layers.
 
-Sample `k` of every pixel draws its random numbers from `fold_in(key, k)`, so an image depends only on the scene, the
-key and spp (never on the batch size), and memory is bounded for any spp.
+A batch's work is a list of items, one chunk of pixels of one sample layer each; the devices share the items (so even
+a 1-spp image keeps every device busy) and each device traces its items one after the other.
+
+Sample `k` of every pixel draws its random numbers from `fold_in(key, k)` (hashed by `_random.uniforms`), so an image
+depends only on the scene, the key and spp (never on the batch size), and memory is bounded for any spp.
 """
 
 from __future__ import annotations
 
-import math
 from typing import Callable
 
 import equinox as eqx
@@ -16,6 +18,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from ._random import uniforms
 from ._integrator import ESTIMATORS, Options, make_proposal, n_dims, n_iterations, trace_path
 from ._scene import Scene, pack
 
@@ -35,78 +38,77 @@ def layers_per_batch(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PA
     return max(1, min(spp, batch_paths // n_pix))
 
 
-def _trace_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, valid: Array, options: Options, proposal,
-                  chunk_paths: int = DEFAULT_CHUNK_PATHS):
-    """Sum over the given sample layers of every pixel's radiance: `(H*W, 3)`. Layers where `valid` is False are
-    padding. Each layer is traced in chunks of `chunk_paths` pixels (static); the last chunk is padded with copies of
-    the first pixels (real paths, so no NaN can reach a gradient), whose results are dropped."""
+def n_chunks(scene: Scene, chunk_paths: int = DEFAULT_CHUNK_PATHS) -> tuple[int, int]:
+    """`(chunk, n_chunks)`: a sample layer's pixels are traced in `n_chunks` chunks of `chunk` paths (the last one
+    padded)."""
+    n_pix = scene.camera.width * scene.camera.height
+    chunk = max(1, min(int(chunk_paths), n_pix))
+    return chunk, -(-n_pix // chunk)
+
+
+def items_per_call(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PATHS,
+                   chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1) -> int:
+    """Work items (one chunk of one sample layer) `render` traces per compiled call: the chunks of
+    `layers_per_batch` layers, rounded up to a multiple of `n_devices` (padding items are traced and dropped)."""
+    n = layers_per_batch(scene, spp, batch_paths) * n_chunks(scene, chunk_paths)[1]
+    return -(-n // n_devices) * n_devices
+
+
+def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, valid: Array, options: Options,
+                 proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS):
+    """Sum of every pixel's radiance over the given work items, `(n_chunks * chunk, 3)` (rows past `H*W` belong to the
+    last chunk's padding). Item `i` traces chunk `chunk_ids[i]` of sample layer `layer_ids[i]`, one after the other;
+    items where `valid` is False add nothing. A padding row traces a real pixel (its index modulo `H*W`, so no NaN
+    can reach a gradient) with its own random numbers, and is dropped by the caller."""
     cam = scene.camera
     H, W = cam.height, cam.width
     pk = pack(scene)
     prop = make_proposal(scene, options, proposal)
     n_iter, K = n_iterations(scene), n_dims(scene)
-    rows, cols = jnp.divmod(jnp.arange(H * W), W)
-    base = jnp.stack([cols, rows], axis=-1).astype(jnp.float32)
-    n_pix = H * W
-    chunk = max(1, min(int(chunk_paths), n_pix))
-    n_chunks = -(-n_pix // chunk)
-    pad = n_chunks * chunk - n_pix
+    chunk, n_ch = n_chunks(scene, chunk_paths)
 
-    def one_layer(layer_id, valid):
-        k = jax.random.fold_in(key, layer_id)
-        k_pix, k_path = jax.random.split(k)
-        jitter = jax.random.uniform(k_pix, (H * W, 2))
-        U = jax.random.uniform(k_path, (H * W, n_iter, K))
-
-        def one_path(pixel, U_p):
-            o, d = cam.generate_ray(pixel)
-            return trace_path(scene, pk, prop, options, o, d, U_p)
-
-        pixels = base + jitter
-        if n_chunks == 1:
-            radiance = jax.vmap(one_path)(pixels, U)
-        else:
-            pixels = jnp.concatenate([pixels, pixels[:pad]]).reshape(n_chunks, chunk, 2)
-            U = jnp.concatenate([U, U[:pad]]).reshape(n_chunks, chunk, n_iter, K)
-            radiance = jax.lax.map(lambda xs: jax.vmap(one_path)(*xs), (pixels, U)).reshape(-1, 3)[:n_pix]
-        return jnp.where(valid, radiance, 0.0)
-
-    total = jnp.zeros((H * W, 3), jnp.float32)
+    def one_path(pixel, U_p):
+        o, d = cam.generate_ray(pixel)
+        return trace_path(scene, pk, prop, options, o, d, U_p)
 
     def step(acc, xs):
-        return acc + one_layer(*xs), None
+        layer_id, chunk_id, ok = xs
+        k_pix, k_path = jax.random.split(jax.random.fold_in(key, layer_id))
+        row0 = chunk_id * chunk
+        rows, cols = jnp.divmod((row0 + jnp.arange(chunk, dtype=jnp.uint32)) % (H * W), W)
+        pixels = jnp.stack([cols, rows], axis=-1).astype(jnp.float32) + uniforms(k_pix, chunk, 2, row0)
+        U = uniforms(k_path, chunk, n_iter * K, row0).reshape(chunk, n_iter, K)
+        radiance = jnp.where(ok, jax.vmap(one_path)(pixels, U), 0.0)
+        part = jax.lax.dynamic_slice_in_dim(acc, row0, chunk) + radiance
+        return jax.lax.dynamic_update_slice_in_dim(acc, part, row0, axis=0), None
 
-    total, _ = jax.lax.scan(step, total, (layer_ids, valid))
-    return total
-
-
-def layers_per_call(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PATHS, n_devices: int = 1) -> int:
-    """Sample layers `render` traces per compiled call: `layers_per_batch` rounded up to whole shares per device.
-    Every device gets the same number (padding layers where needed, even at spp 1): a padding layer costs no wall
-    time beside a real one, and a small spp compiles no program of its own."""
-    return -(-layers_per_batch(scene, spp, batch_paths) // n_devices) * n_devices
+    acc = jnp.zeros((n_ch * chunk, 3), jnp.float32)
+    acc, _ = jax.lax.scan(step, acc, (layer_ids, chunk_ids, valid))
+    return acc
 
 
 @eqx.filter_jit
-def _render_layers(scene: Scene, key: PRNGKeyArray, layer_ids: Array, n_valid: Array, options: Options, proposal,
-                   chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1):
-    """`_trace_layers` over `layer_ids` (the first `n_valid` are real), split evenly across the first `n_devices`
-    local devices (static; `len(layer_ids)` must be a multiple of it): one compiled program, each device scans its
-    share of the layers, the shares are summed. The layers and their random numbers do not depend on `n_devices`;
-    only the float32 summation order does."""
+def _render_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, n_valid: Array,
+                  options: Options, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1):
+    """`_trace_items` over the work items (the first `n_valid` are real), split evenly across the first `n_devices`
+    local devices (static; the number of items must be a multiple of it): one compiled program, each device scans
+    its share of the items, the shares are summed; returns `(H*W, 3)`. The items and their random numbers do not
+    depend on `n_devices`; only the float32 summation order does."""
+    n_pix = scene.camera.width * scene.camera.height
     valid = jnp.arange(layer_ids.shape[0]) < n_valid
     if n_devices == 1:
-        return _trace_layers(scene, key, layer_ids, valid, options, proposal, chunk_paths)
+        return _trace_items(scene, key, layer_ids, chunk_ids, valid, options, proposal, chunk_paths)[:n_pix]
     mesh = Mesh(np.asarray(jax.local_devices()[:n_devices]), ("d",))
     arrays, static = eqx.partition((scene, key, proposal), eqx.is_array)
 
-    def share(arrays, ids, ok):
+    def share(arrays, layers, chunks, ok):
         sc, k, prop = eqx.combine(arrays, static)
-        return _trace_layers(sc, k, ids, ok, options, prop, chunk_paths)[None]
+        return _trace_items(sc, k, layers, chunks, ok, options, prop, chunk_paths)[None]
 
-    parts = jax.shard_map(share, mesh=mesh, in_specs=(PartitionSpec(), PartitionSpec("d"), PartitionSpec("d")),
-                          out_specs=PartitionSpec("d"), check_vma=False)(arrays, layer_ids, valid)
-    return parts.sum(axis=0)
+    d = PartitionSpec("d")
+    parts = jax.shard_map(share, mesh=mesh, in_specs=(PartitionSpec(), d, d, d), out_specs=d,
+                          check_vma=False)(arrays, layer_ids, chunk_ids, valid)
+    return parts.sum(axis=0)[:n_pix]
 
 
 def render(
@@ -139,7 +141,7 @@ def render(
     - `batch_paths`: paths per compiled call (memory bound); `progress(done_spp, spp)` is called after each batch.
     - `chunk_paths`: paths traced together in one vectorized pass (speed only: the image changes at float32
       rounding level, never in distribution; default 1024, see `DEFAULT_CHUNK_PATHS`).
-    - `devices`: how many local devices share each batch's sample layers (default: all of them; a CPU is one device
+    - `devices`: how many local devices share each batch's work (default: all of them; a CPU is one device
       unless `jaxfog.use_cpu_cores()` ran before JAX started, which the command-line entry points do). The image
       changes at float32 rounding level only.
 
@@ -159,15 +161,17 @@ def render(
     n_dev = jax.local_device_count() if devices is None else devices
     if not isinstance(n_dev, int) or not 1 <= n_dev <= jax.local_device_count():
         raise ValueError(f"devices must be an integer in [1, {jax.local_device_count()}], got {devices!r}")
-    per = layers_per_call(scene, spp, batch_paths, n_dev)
-    n_batches = math.ceil(spp / per)
+    per = layers_per_batch(scene, spp, batch_paths)
+    _, n_ch = n_chunks(scene, chunk_paths)
+    n_items = items_per_call(scene, spp, batch_paths, chunk_paths, n_dev)
+    item = np.arange(n_items)
     H, W = scene.camera.height, scene.camera.width
     total = jnp.zeros((H * W, 3), jnp.float32)
-    for i in range(n_batches):
-        start = i * per
-        ids = jnp.arange(start, start + per, dtype=jnp.uint32)
-        n_valid = jnp.int32(min(per, spp - start))
-        total = total + _render_layers(scene, key, ids, n_valid, options, proposal, chunk_paths, n_dev)
+    for start in range(0, spp, per):
+        layers = jnp.asarray(start + item // n_ch, jnp.uint32)
+        chunks = jnp.asarray(item % n_ch, jnp.uint32)
+        n_valid = jnp.int32(min(per, spp - start) * n_ch)
+        total = total + _render_items(scene, key, layers, chunks, n_valid, options, proposal, chunk_paths, n_dev)
         if progress is not None:
             progress(min(spp, start + per), spp)
     return (total / spp).reshape(H, W, 3)

@@ -24,9 +24,13 @@ Three studies, each printed as a table, written to `DIR/bench.json` and plotted 
 3. **Mitsuba 3 side by side** (optional extra `compare`; `jaxfog.bench_mitsuba`): the same scene rendered in Mitsuba's
    `volpath` (LLVM backend) in a subprocess in the same run; the means (image and 4 x 4 regions) are compared within
    their standard errors, and the time-to-equal-error ratio is printed: jaxfog's time (default strategy) to reach
-   Mitsuba's 64-spp RMSE against the shared reference, over Mitsuba's time for 64 spp; for the headline ratio jaxfog's
-   default strategy is timed again right before and after Mitsuba's renders, so both see the same machine load.
-   Without Mitsuba the run says it was skipped.
+   Mitsuba's 64-spp RMSE against the shared reference, over Mitsuba's time for 64 spp. The HEADLINE is measured, not
+   interpolated: Mitsuba's error is the expected RMSE of its independent 64-spp renders (16), jaxfog's the expected
+   RMSE of `equal_error_draws` (32) independent renders at the whole spp that reaches it (the spp the reference's
+   variance predicts, one more while the measured error is above Mitsuba's), each side timed as single renders right
+   after one another. Also printed: the fractional spp the reference's variance predicts, and the ratio from the
+   strategy study's one RMSE curve (both with jaxfog timed right before and after Mitsuba). Without Mitsuba the run
+   says it was skipped.
 
 Peak memory: `memory_analysis()` of the compiled batch (XLA's argument + output + temporary buffers of one call of
 `paths_per_call` paths), and the process's peak resident set size (`VmHWM`, `jaxfog._measure.max_rss_mib`) after each
@@ -86,15 +90,17 @@ class Config:
     depth_spp: int = 16  # two halves of depth_spp / 2
     depth_layers_per_call: int = 4
     mitsuba_scene: str = "spot_fog"
-    mitsuba_spp: int = 16  # per Mitsuba render
-    mitsuba_chunks: int = 64
+    mitsuba_spp: int = 64  # per Mitsuba render (the equal-error target is its 64-spp RMSE)
+    mitsuba_chunks: int = 16
+    equal_error_draws: int = 32  # independent jaxfog images at the spp that matches Mitsuba's error
     seed: int = 0
     parts: tuple = ("strategies", "depth", "mitsuba")
 
 
 FULL = Config()
 QUICK = Config(scenes=("spot_fog",), size=16, levels=(4, 8, 16), ref_spp=64, ref_chunks=4, depths=(2, 4),
-               depth_refs=(8, 8, 8), depth_size=16, depth_spp=8, depth_layers_per_call=4, mitsuba_spp=16, mitsuba_chunks=8)
+               depth_refs=(8, 8, 8), depth_size=16, depth_spp=8, depth_layers_per_call=4, mitsuba_spp=16, mitsuba_chunks=8,
+               equal_error_draws=4)
 
 
 # ========================================================================================= statistics (pure numpy)
@@ -131,6 +137,26 @@ def mean_and_se(values) -> tuple[float, float]:
     v = np.asarray(values, np.float64)
     se = float(np.std(v, ddof=1) / math.sqrt(v.size)) if v.size > 1 else float("nan")
     return float(np.mean(v)), se
+
+
+def variance_per_spp(chunks, chunk_spp: int) -> float:
+    """Variance of one sample, averaged over pixels and channels, from independent images of `chunk_spp` spp each:
+    `chunk_spp * mean(var over images, ddof=1)`. An unbiased n-spp image's expected MSE against the truth is this
+    over n."""
+    c = np.asarray(chunks, np.float64)
+    if c.shape[0] < 2:
+        raise ValueError("need at least two independent images")
+    return float(chunk_spp * np.mean(np.var(c, axis=0, ddof=1)))
+
+
+def expected_rmse(images, reference, ref_rmse: float) -> tuple[float, float, list]:
+    """Expected RMSE against the truth of independent images like `images`: `sqrt(mean MSE - ref_rmse^2)` with the
+    MSE against an independent unbiased `reference`; its standard error (delta method on the mean MSE, nan for one
+    image) and the images' corrected RMSEs."""
+    mses = [rmse(x, reference) ** 2 for x in images]
+    m, se = mean_and_se(mses)
+    e = corrected_rmse(math.sqrt(m), ref_rmse)
+    return e, (se / (2 * e) if e > 0 else float("nan")), [corrected_rmse(math.sqrt(x), ref_rmse) for x in mses]
 
 
 def block_means(image, n: int = 4) -> np.ndarray:
@@ -313,13 +339,14 @@ def xla_memory(scene, strategy: dict, paths_per_call: int) -> dict | None:
         import jax.numpy as jnp
 
         from ._integrator import Options
-        from ._render import DEFAULT_CHUNK_PATHS, _render_layers, layers_per_call
+        from ._render import DEFAULT_CHUNK_PATHS, _render_items, items_per_call, layers_per_batch
 
         n_dev = jax.local_device_count()  # as `render` splits a batch
-        per = layers_per_call(scene, 1 << 30, paths_per_call, n_dev)
-        args = (scene, jax.random.key(0), jnp.arange(per, dtype=jnp.uint32), jnp.int32(per), Options(**strategy), None,
-                DEFAULT_CHUNK_PATHS, n_dev)
-        ma = _render_layers.lower(*args).compile().compiled.memory_analysis()
+        n = items_per_call(scene, 1 << 30, paths_per_call, DEFAULT_CHUNK_PATHS, n_dev)
+        per = layers_per_batch(scene, 1 << 30, paths_per_call)
+        ids = jnp.zeros(n, jnp.uint32)
+        args = (scene, jax.random.key(0), ids, ids, jnp.int32(n), Options(**strategy), None, DEFAULT_CHUNK_PATHS, n_dev)
+        ma = _render_items.lower(*args).compile().compiled.memory_analysis()
         mib = 1.0 / (1 << 20)
         return {"temp_mib": ma.temp_size_in_bytes * mib, "argument_mib": ma.argument_size_in_bytes * mib,
                 "output_mib": ma.output_size_in_bytes * mib,
@@ -434,6 +461,7 @@ def _depth_layers_fn():
     import jax.numpy as jnp
 
     from ._integrator import make_proposal, n_dims, n_iterations, trace_path
+    from ._random import uniforms
     from ._scene import pack
 
     @eqx.filter_jit
@@ -448,8 +476,8 @@ def _depth_layers_fn():
 
         def one_layer(layer_id):
             k_pix, k_path = jax.random.split(jax.random.fold_in(key, layer_id))
-            jitter = jax.random.uniform(k_pix, (H * W, 2))
-            U = jnp.stack([jax.random.uniform(jax.random.fold_in(k_path, i), (H * W, K)) for i in range(n_iter)],
+            jitter = uniforms(k_pix, H * W, 2)
+            U = jnp.stack([uniforms(jax.random.fold_in(k_path, i), H * W, K) for i in range(n_iter)],
                           axis=1) if n_iter else jnp.zeros((H * W, 0, K))
 
             def one_path(pixel, U_p):
@@ -562,12 +590,16 @@ def run_mitsuba(name: str, size: int, spp: int, chunks: int, workdir: Path, pyth
 
 
 def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir: Path, log=print,
-                    jax_time_per_spp: Callable[[], float] | None = None, **kw) -> dict:
+                    jax_time_per_spp: Callable[[], float] | None = None,
+                    jax_draws: Callable[[int, int], tuple[list, list]] | None = None, **kw) -> dict:
     """Means within standard errors (whole image, 4 x 4 regions, orientation) and the time-to-equal-error ratio.
 
     `jax_time_per_spp()`, when given, times jaxfog's default strategy right before and right after Mitsuba's renders,
-    so that the headline ratio compares the two under the same machine load (the spp jaxfog needs comes from its
-    RMSE-vs-spp curve of the strategy study)."""
+    so that the ratios compare the two under the same machine load. `jax_draws(spp, n)`, when given, renders `n`
+    independent jaxfog images (default strategy, `render`'s own batching) of `spp` spp and returns them with their
+    wall times: the HEADLINE. Both sides are expected errors over independent images (Mitsuba: its 64-spp images;
+    jaxfog: `draws` images at the whole spp that the reference's variance says reaches Mitsuba's error, one spp more
+    while the measured error is above it), and both times are those of single renders at that spp."""
     t_jax_before = jax_time_per_spp() if jax_time_per_spp is not None else None
     # the run's --seed also draws Mitsuba's images (seeds from 1000 x seed), so repeated runs are independent
     mr = run_mitsuba(name, cfg.size, cfg.mitsuba_spp, cfg.mitsuba_chunks, workdir, seed0=1000 * cfg.seed, **kw)
@@ -622,6 +654,8 @@ def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir
     rmse64_raw = math.sqrt(float(np.mean(mse64))) if mse64 else float("nan")
     rmse64 = corrected_rmse(rmse64_raw, ref["rmse"])
     rmse64_median = corrected_rmse(math.sqrt(float(np.median(mse64))), ref["rmse"]) if mse64 else float("nan")
+    _, rmse64_se = mean_and_se(mse64) if mse64 else (0.0, float("nan"))
+    rmse64_se = rmse64_se / (2 * rmse64) if rmse64 > 0 else float("nan")
     t_per_spp = float(np.mean(times)) / spp
     t_mi = 64 * t_per_spp
     res = {
@@ -636,6 +670,7 @@ def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir
         "halves_jaxfog": halves(ref["image"]), "halves_mitsuba": halves(mi_img),
         "levels": levels, "rmse64": rmse64_raw, "rmse64_corrected": rmse64, "rel_rmse64_corrected": rmse64 / ref["mean"],
         "rmse64_from_images": n_groups, "time64_s": t_mi, "rmse64_corrected_median": rmse64_median,
+        "rmse64_corrected_se": rmse64_se,
         "rel_rmse64_per_image": [corrected_rmse(math.sqrt(x), ref["rmse"]) / ref["mean"] for x in mse64],
         "rel_rmse_all_corrected": corrected_rmse(rmse(mi_img, ref["image"]), ref["rmse"]) / ref["mean"],
     }
@@ -660,6 +695,31 @@ def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir
             "jaxfog_spp_to_target": spp_mean, "how": how, "ratio": spp_mean * t_adj / t_mi,
             "jaxfog_spp_to_median_target": spp_med, "how_median": how_med, "ratio_median_target": spp_med * t_adj / t_mi,
         }
+        # from the variance of the reference's independent chunks (default strategy): expected MSE = sigma^2 / spp
+        sigma2 = variance_per_spp(ref["chunks"], ref["spp"] // ref["chunks_n"])
+        n_star = sigma2 / rmse64 ** 2
+        res["variance_based"] = {"sigma2_per_spp": sigma2, "from_chunks": ref["chunks_n"],
+                                 "jaxfog_spp_to_target": n_star, "ratio": n_star * t_adj / t_mi}
+    if jax_draws is not None and rmse64 > 0:
+        n_draws = cfg.equal_error_draws
+        spp = max(1, math.ceil(res.get("variance_based", {}).get("jaxfog_spp_to_target", 1.0)))
+        tries = []
+        for _ in range(3):
+            imgs, times_j = jax_draws(spp, n_draws)
+            e, e_se, per_image = expected_rmse(imgs, ref["image"], ref["rmse"])
+            t_j = float(np.mean(times_j))
+            tries.append({"spp": spp, "draws": n_draws, "time_s": t_j, "time_s_median": float(np.median(times_j)),
+                          "rmse_corrected": e, "rmse_corrected_se": e_se, "rel_rmse_corrected": e / ref["mean"],
+                          "rel_rmse_corrected_se": e_se / ref["mean"], "reached": bool(e <= rmse64),
+                          "ratio": t_j / t_mi,
+                          "rel_rmse_per_image": [x / ref["mean"] for x in per_image]})
+            log(f"  jaxfog at {spp} spp: rel RMSE {e / ref['mean']:.3f} +- {e_se / ref['mean']:.3f} "
+                f"({n_draws} images, {1e3 * t_j:.0f} ms each) vs Mitsuba's {rmse64 / ref['mean']:.3f} at 64 spp "
+                f"({1e3 * t_mi:.0f} ms)")
+            if e <= rmse64:
+                break
+            spp += 1
+        res["measured"] = dict(tries[-1], tries=tries[:-1])
     return res
 
 
@@ -761,9 +821,25 @@ def format_tables(result: dict) -> str:
                          f"median image {100 * mt['rmse64_corrected_median'] / mt['jaxfog_mean']:.1f}%; per image "
                          + " ".join(f"{100 * x:.0f}%" for x in mt["rel_rmse64_per_image"])
                          + f"), time for 64 spp {mt['time64_s']:.2f} s")
+            ms = mt.get("measured")
+            if ms:
+                lines.append(f"  HEADLINE, measured: jaxfog (default strategy) at {ms['spp']} spp: rel RMSE "
+                             f"{100 * ms['rel_rmse_corrected']:.0f}% +- {100 * ms['rel_rmse_corrected_se']:.0f}% (expected "
+                             f"over {ms['draws']} independent images) in {_fmt_ms(ms['time_s'])} ms per image; Mitsuba at 64 "
+                             f"spp: {100 * mt['rel_rmse64_corrected']:.0f}% +- "
+                             f"{100 * mt['rmse64_corrected_se'] / mt['jaxfog_mean']:.0f}% in {_fmt_ms(mt['time64_s'])} ms -> "
+                             f"time-to-equal-error ratio jaxfog / Mitsuba = {ms['ratio']:.3f} ({1 / ms['ratio']:.1f}x)"
+                             + ("" if ms["reached"] else " (jaxfog's error NOT reached Mitsuba's)"))
+                for t in ms["tries"]:
+                    lines.append(f"    (at {t['spp']} spp first: rel RMSE {100 * t['rel_rmse_corrected']:.0f}% +- "
+                                 f"{100 * t['rel_rmse_corrected_se']:.0f}%, above Mitsuba's)")
+            vb = mt.get("variance_based")
+            if vb:
+                lines.append(f"  from the reference's variance ({vb['from_chunks']} chunks): jaxfog needs "
+                             f"{vb['jaxfog_spp_to_target']:.2f} spp (fractional) -> ratio {vb['ratio']:.3f}")
             adj = mt.get("adjacent")
             if adj:
-                lines.append(f"  HEADLINE (timed next to Mitsuba: jaxfog {_fmt_ms(adj['jaxfog_time_per_spp_s_before'])} / "
+                lines.append(f"  from the strategy study's single curve (timed next to Mitsuba: jaxfog {_fmt_ms(adj['jaxfog_time_per_spp_s_before'])} / "
                              f"{_fmt_ms(adj['jaxfog_time_per_spp_s_after'])} ms/spp before / after, Mitsuba "
                              f"{_fmt_ms(adj['mitsuba_time_per_spp_s'])} ms/spp): jaxfog default needs "
                              f"{adj['jaxfog_spp_to_target']:.2f} spp ({adj['how']}) for Mitsuba's 64-spp RMSE: "
@@ -877,8 +953,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="deep reference max_depth for every depth scene (default 32 thin, 64 spot_fog, 128 dense)")
     p.add_argument("--depth-size", type=int, metavar="N", help="image size of the depth study (default 64)")
     p.add_argument("--depth-spp", type=int, metavar="N", help="spp of the depth study (default 16)")
-    p.add_argument("--mitsuba-chunks", type=int, metavar="N", help="Mitsuba renders of --mitsuba-spp each (default 64)")
-    p.add_argument("--mitsuba-spp", type=int, metavar="N", help="spp of one Mitsuba render (default 16)")
+    p.add_argument("--mitsuba-chunks", type=int, metavar="N", help="Mitsuba renders of --mitsuba-spp each (default 16)")
+    p.add_argument("--mitsuba-spp", type=int, metavar="N", help="spp of one Mitsuba render (default 64)")
+    p.add_argument("--equal-error-draws", type=int, metavar="N",
+                   help="independent jaxfog images measured at Mitsuba's 64-spp error (default 32, at most 999)")
     p.add_argument("--max-bias", type=float, nargs="+", metavar="E", default=[0.01, 0.03, 0.1],
                    help="relative errors for which the cheapest depth is picked (default 0.01 0.03 0.1)")
     p.add_argument("--seed", type=int, default=0)
@@ -891,7 +969,8 @@ def config_from_args(args: argparse.Namespace) -> Config:
     pairs = {"scenes": args.scenes, "parts": args.parts, "size": args.size, "levels": args.levels,
              "ref_spp": args.ref_spp, "strategies": args.strategies, "depth_scenes": args.depth_scenes,
              "depths": args.depths, "depth_size": args.depth_size,
-             "depth_spp": args.depth_spp, "mitsuba_chunks": args.mitsuba_chunks, "mitsuba_spp": args.mitsuba_spp}
+             "depth_spp": args.depth_spp, "mitsuba_chunks": args.mitsuba_chunks, "mitsuba_spp": args.mitsuba_spp,
+             "equal_error_draws": args.equal_error_draws}
     for k, v in pairs.items():
         if v is not None:
             setattr(cfg, k, tuple(v) if isinstance(v, list) else v)
@@ -905,6 +984,10 @@ def config_from_args(args: argparse.Namespace) -> Config:
         raise ValueError(f"--levels must be increasing multiples of the first, got {lv}")
     if cfg.ref_spp % cfg.ref_chunks or (cfg.ref_spp // cfg.ref_chunks) % lv[0]:
         raise ValueError(f"--ref-spp must be a multiple of {cfg.ref_chunks * lv[0]}, got {cfg.ref_spp}")
+    if not 1 <= cfg.equal_error_draws <= 999:
+        raise ValueError(f"--equal-error-draws must be in [1, 999], got {cfg.equal_error_draws}")
+    if cfg.mitsuba_spp < 1 or cfg.mitsuba_chunks < 2:
+        raise ValueError("--mitsuba-spp must be >= 1 and --mitsuba-chunks >= 2")
     if min(cfg.depths) < 1 or min(cfg.depth_refs) < 2:
         raise ValueError("--depths must be >= 1 and --depth-ref >= 2")
     for name in set(cfg.scenes) | set(cfg.depth_scenes):
@@ -954,8 +1037,22 @@ def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.0
                 fn(sf.scene, 9_000_000 + cfg.seed, spp_t, **STRATEGIES[DEFAULT_STRATEGY])
                 return (time.perf_counter() - t0) / spp_t
 
+            from ._render import DEFAULT_BATCH_PATHS
+
+            render_default = jaxfog_render_fn(DEFAULT_BATCH_PATHS)  # what `jaxfog.render(scene, key, spp)` does
+
+            def jax_draws(spp, n):
+                kw = STRATEGIES[DEFAULT_STRATEGY]
+                render_default(sf.scene, 8_999_999, spp, **kw)  # compiles (a program per spp below a full batch)
+                imgs, times = [], []
+                for i in range(n):
+                    t0 = time.perf_counter()
+                    imgs.append(render_default(sf.scene, 8_000_000 + 100_000 * cfg.seed + 1000 * spp + i, spp, **kw))
+                    times.append(time.perf_counter() - t0)
+                return imgs, times
+
             result["mitsuba"] = mitsuba_compare(name, cfg, refs[name], result["scenes"][name], cache, log=log,
-                                                jax_time_per_spp=jax_time_per_spp)
+                                                jax_time_per_spp=jax_time_per_spp, jax_draws=jax_draws)
         else:
             result["mitsuba"] = {"scene": name, "skipped": f"{name} is not among the benchmark scenes of this run"}
     result["memory"] = {"jaxfog process max_rss": max_rss_mib()}

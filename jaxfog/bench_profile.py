@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import jaxfog as jf
 from jaxfog import _render
 from jaxfog._integrator import n_dims, n_iterations
+from jaxfog._random import uniforms
 
 SCENE = "data_synthetic/scenes/spot_fog.json"
 
@@ -66,7 +67,7 @@ def _rng_fn(scene, spp):
     def f(key):
         def one(layer_id):
             k_pix, k_path = jax.random.split(jax.random.fold_in(key, layer_id))
-            return jax.random.uniform(k_pix, (n_pix, 2)).sum() + jax.random.uniform(k_path, (n_pix, n_iter, K)).sum()
+            return uniforms(k_pix, n_pix, 2).sum() + uniforms(k_path, n_pix, n_iter * K).sum()
 
         return jax.lax.map(one, jnp.arange(spp, dtype=jnp.uint32)).sum()
 
@@ -122,9 +123,8 @@ def main(argv=None) -> int:
         run_s = med * spp / 1e3
         out_rows.append({
             "group": r["group"], "name": r["name"], "overrides": r["overrides"], "kwargs": r["kwargs"],
-            "layers_per_call": _render.layers_per_call(
-                r["scene"], spp, r["kwargs"].get("batch_paths", _render.DEFAULT_BATCH_PATHS),
-                r["kwargs"].get("devices", jax.local_device_count())),
+            "layers_per_call": _render.layers_per_batch(
+                r["scene"], spp, r["kwargs"].get("batch_paths", _render.DEFAULT_BATCH_PATHS)),
             "ms_per_spp_median": med, "ms_per_spp": r["ms_per_spp"], "paths_per_s": n_pix / (med / 1e3),
             "ratio_to_default": med / ref, "first_call_s": r["first_call_s"],
             "compile_s_estimate": max(0.0, r["first_call_s"] - run_s),

@@ -113,6 +113,58 @@ def test_measure_strategy_and_ratios_with_a_fake_renderer():
     assert "free_flight" in text and "default" in text
 
 
+# ------------------------------------------------------------------------------- equal error against Mitsuba (fake)
+def test_variance_per_spp_and_expected_rmse():
+    rng = np.random.default_rng(2)
+    truth = rng.uniform(0.5, 1.5, (64, 64, 3))
+    sigma = 0.8  # per-sample standard deviation of every pixel
+    chunks = [truth + sigma / math.sqrt(4) * rng.standard_normal(truth.shape) for _ in range(8)]  # 4 spp each
+    # sample variance over 8 images of 12288 pixel-channels: relative sd sqrt(2/7)/sqrt(12288) ~ 0.5%
+    assert bench.variance_per_spp(chunks, 4) == pytest.approx(sigma**2, rel=0.03)
+    ref_sigma = 0.05
+    ref = truth + ref_sigma * rng.standard_normal(truth.shape)
+    imgs = [truth + 0.3 * rng.standard_normal(truth.shape) for _ in range(10)]
+    e, se, per = bench.expected_rmse(imgs, ref, ref_sigma)
+    assert e == pytest.approx(0.3, rel=0.01) and 0 < se < 0.01 and len(per) == 10
+    with pytest.raises(ValueError):
+        bench.variance_per_spp(chunks[:1], 4)
+
+
+def test_mitsuba_compare_measures_jaxfog_at_mitsubas_error(monkeypatch, tmp_path):
+    """With a fake Mitsuba (64-spp images of per-sample sd 4, 3 s each) and a fake jaxfog (per-sample sd 2, so 16 spp
+    reach Mitsuba's 64-spp error; 0.01 s per spp), the measured headline renders jaxfog at 16 or 17 spp and reports
+    the ratio of single-render times."""
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0.5, 1.5, (32, 32, 3))
+    s_mi, s_jf, t_spp_jf = 4.0, 2.0, 0.01
+    mi_imgs = np.stack([truth + s_mi / 8 * rng.standard_normal(truth.shape) for _ in range(16)]).astype(np.float32)
+    monkeypatch.setattr(bench, "run_mitsuba", lambda *a, **k: {
+        "images": mi_imgs, "times": np.full(16, 3.0), "spp": np.int64(64), "version": "fake", "variant": "fake",
+        "threads": np.int64(2), "warmup_s": np.float64(1.0), "max_rss_mib": np.float64(1.0)})
+    ref_sigma = 0.02
+    chunks = np.stack([truth + s_jf / 8 * rng.standard_normal(truth.shape) for _ in range(8)])  # 64 spp each
+    ref = {"image": truth + ref_sigma * rng.standard_normal(truth.shape), "chunks": chunks, "spp": 512, "chunks_n": 8,
+           "mean": float(truth.mean()), "mean_se": 0.001, "rmse": ref_sigma}
+    calls = []
+
+    def draws(spp, n):
+        calls.append(spp)
+        return [truth + s_jf / math.sqrt(spp) * rng.standard_normal(truth.shape) for _ in range(n)], [t_spp_jf * spp] * n
+
+    levels = [{"spp": n, "time_s": t_spp_jf * n, "rmse_corrected": s_jf / math.sqrt(n)} for n in (1, 4, 16, 64)]
+    cfg = bench.Config(mitsuba_spp=64, mitsuba_chunks=16, equal_error_draws=32)
+    res = bench.mitsuba_compare("fake", cfg, ref, {"strategies": {"default": {"levels": levels}}}, tmp_path,
+                                log=lambda s: None, jax_time_per_spp=lambda: t_spp_jf, jax_draws=draws)
+    assert res["rmse64_corrected"] == pytest.approx(s_mi / 8, rel=0.05)
+    assert res["variance_based"]["jaxfog_spp_to_target"] == pytest.approx(16, rel=0.15)
+    m = res["measured"]
+    assert m["reached"] and m["spp"] in (15, 16, 17, 18) and calls[-1] == m["spp"]
+    assert m["ratio"] == pytest.approx(t_spp_jf * m["spp"] / 3.0)
+    assert m["rel_rmse_corrected"] * ref["mean"] <= res["rmse64_corrected"]
+    text = bench.format_tables({"mitsuba": {**res, "best_orientation": "as is"}})
+    assert "HEADLINE, measured" in text and f"at {m['spp']} spp" in text
+
+
 # ----------------------------------------------------------------------------------------------------- pick_depth
 def _row(depth, mean_bias, se, pixel, t, ref=False):
     return {"depth": depth, "rel_mean_bias": mean_bias, "rel_mean_bias_se": se, "rel_pixel_bias": pixel,

@@ -1,5 +1,6 @@
 """Rendering on several local devices (CPU cores exposed as JAX devices) gives the image and forward-mode derivative of one device:
-the same sample layers and random numbers, only summed in another order. Runs in fresh processes, because the
+the same sample layers and random numbers, only summed in another order; a layer split into chunks shared by the
+devices gives the paths of the whole layer. Runs in fresh processes, because the
 device count is fixed when JAX starts."""
 
 from __future__ import annotations
@@ -24,7 +25,11 @@ sc = jaxfog.load_scene("data_synthetic/scenes/spot_fog.json",
 f = lambda s: jaxfog.render(sc.replace_medium(sigma_t=s), jax.random.key(3), 7)  # 7 spp: uneven split
 img = f(0.5)
 val, tan = jax.jvp(lambda s: f(s).mean(), (0.5,), (1.0,))
-print(json.dumps({"devices": n, "img": img.tolist(), "jvp": float(tan)}))
+# 1 spp in three chunks of 100 pixels (the last one padded): three work items, padded to a multiple of the devices
+img1 = jaxfog.render(sc, jax.random.key(5), 1, chunk_paths=100)
+img1_whole = jaxfog.render(sc, jax.random.key(5), 1)
+print(json.dumps({"devices": n, "img": img.tolist(), "jvp": float(tan), "img1": img1.tolist(),
+                  "img1_whole": img1_whole.tolist()}))
 """
 
 
@@ -43,6 +48,9 @@ def test_two_devices_match_one():
     # float32 sums of 7 layers in another order: rounding only
     np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-7)
     assert abs(two["jvp"] - one["jvp"]) <= 1e-5 * abs(one["jvp"])
+    # a 1-spp image split into chunks shared by the devices: the same paths, whatever the chunking and device count
+    for r in (one, two):
+        np.testing.assert_allclose(np.asarray(r["img1"]), np.asarray(one["img1_whole"]), rtol=1e-5, atol=1e-7)
 
 
 def test_devices_argument_is_checked():
