@@ -10,7 +10,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._math import INV_PI, PI, safe_sqrt, to_world
+from ._math import INV_PI, PI, safe_sqrt, sincos, to_world
 
 
 def _rgb(x) -> Float[Array, "3"]:
@@ -54,7 +54,8 @@ def cosine_sample(u: Float[Array, "2"], n: Float[Array, "3"]) -> tuple[Float[Arr
     r = jnp.sqrt(u[0])
     phi = 2.0 * PI * u[1]
     z = safe_sqrt(1.0 - u[0])
-    wo = to_world(jnp.stack([r * jnp.cos(phi), r * jnp.sin(phi), z]), n)
+    sin_phi, cos_phi = sincos(phi)
+    wo = to_world(jnp.stack([r * cos_phi, r * sin_phi, z]), n)
     return wo, z * INV_PI
 
 

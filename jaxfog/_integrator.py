@@ -23,7 +23,7 @@ from ._bsdf import cosine_sample, fresnel_dielectric, reflect, refract
 from ._lights import AreaLight, SpotLight, delta_light_radiant_intensity
 from ._math import INV_PI, PI, cross, dot, one_minus_cos_between, safe_div, safe_normalize, safe_sqrt
 from ._phase import hg_pdf, hg_sample
-from ._math import direction_from_cos
+from ._math import atan2, direction_from_cos, sincos, tan
 from ._scene import DIFFUSE, EMITTER, GLASS, MIRROR, Packed, Scene
 from ._shapes import intersect_rectangles, intersect_spheres
 
@@ -204,8 +204,8 @@ def equiangular_setup(light, o, d, s):
     tb = jnp.where(valid, tb, 1.0)
     # float32(pi/2) is above pi/2, where tan flips sign: keep the angles strictly inside (-pi/2, pi/2)
     half_pi = 1.5707962
-    th_a = jnp.clip(jnp.arctan2(ta - delta, D), -half_pi, half_pi)
-    th_b = jnp.clip(jnp.arctan2(tb - delta, D), -half_pi, half_pi)
+    th_a = jnp.clip(atan2(ta - delta, D), -half_pi, half_pi)
+    th_b = jnp.clip(atan2(tb - delta, D), -half_pi, half_pi)
     valid = valid & (th_b > th_a)
     return delta, D, th_a, th_b, valid
 
@@ -216,7 +216,7 @@ def safe_norm_floor(v, floor=1e-7):
 
 def equiangular_pdf(t, delta, D, th_a, th_b, valid):
     r = t - delta
-    th = jnp.arctan2(r, D)  # compare angles, not tan(theta) * D, which overflows for rays grazing the light
+    th = atan2(r, D)  # compare angles, not tan(theta) * D, which overflows for rays grazing the light
     inside = valid & (th >= th_a - 1e-6) & (th <= th_b + 1e-6)
     return jnp.where(inside, D / (jnp.where(valid, th_b - th_a, 1.0) * (D * D + r * r)), 0.0)
 
@@ -225,7 +225,8 @@ def light_lobe_sample(u, x, light_pos):
     """Direction from `x` uniform in the angle alpha to the direction toward `light_pos` (alpha = pi u[0])."""
     a = safe_normalize(light_pos - x)
     half = 0.5 * PI * u[0]
-    return direction_from_cos(2.0 * jnp.sin(half) ** 2, 2.0 * jnp.cos(half) ** 2, 2.0 * PI * u[1], a)
+    sin_h, cos_h = sincos(half)
+    return direction_from_cos(2.0 * sin_h * sin_h, 2.0 * cos_h * cos_h, 2.0 * PI * u[1], a)
 
 
 def light_lobe_pdf(w, x, light_pos):
@@ -309,7 +310,7 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
                 setup = equiangular_setup(light, state.o, state.d, s)
                 delta, D, th_a, th_b, valid = setup
                 th = th_a + U_b[8 + 2 * n_area + i] * (th_b - th_a)
-                te = jnp.clip(jnp.where(valid, delta + D * jnp.tan(th), 0.0), 0.0, s)
+                te = jnp.clip(jnp.where(valid, delta + D * tan(th), 0.0), 0.0, s)
                 eq_setups.append(setup)
                 eq_t.append(te)
 

@@ -9,7 +9,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._math import cross, dot, safe_normalize
+from ._math import atan2, cross, dot, safe_normalize, safe_sqrt
 
 
 def _vec3(x) -> Float[Array, "3"]:
@@ -74,8 +74,10 @@ def spot_falloff(cos_theta, cutoff_deg, beam_width_deg) -> Float[Array, ""]:
     beam = jnp.deg2rad(beam_width_deg)
     inside_beam = cos_theta >= jnp.cos(beam)
     in_ramp = ~inside_beam & (cos_theta > jnp.cos(cutoff))
-    # double where: arccos has an infinite derivative at +-1, which only the beam/outside branches can reach
-    theta = jnp.arccos(jnp.where(in_ramp, cos_theta, jnp.cos(0.5 * (cutoff + beam))))
+    # double where: arccos has an infinite derivative at +-1, which only the beam/outside branches can reach;
+    # arccos(c) = atan2(sqrt(1 - c^2), c) with the vectorized `atan2` (jnp.arccos is a scalar call on a CPU)
+    c = jnp.where(in_ramp, cos_theta, jnp.cos(0.5 * (cutoff + beam)))
+    theta = atan2(safe_sqrt((1.0 - c) * (1.0 + c)), c)
     width = cutoff - beam
     ramp = (cutoff - theta) / jnp.where(width > 0, width, 1.0)
     return jnp.where(inside_beam, 1.0, jnp.where(in_ramp, ramp, 0.0))

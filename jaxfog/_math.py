@@ -103,7 +103,8 @@ def direction_from_cos(
     """
     sin_theta = safe_sqrt(one_minus_cos * one_plus_cos)
     cos_theta = 0.5 * (one_plus_cos - one_minus_cos)
-    local = jnp.stack([sin_theta * jnp.cos(phi), sin_theta * jnp.sin(phi), cos_theta])
+    sin_phi, cos_phi = sincos(phi)
+    local = jnp.stack([sin_theta * cos_phi, sin_theta * sin_phi, cos_theta])
     return to_world(local, axis)
 
 
@@ -116,3 +117,63 @@ def one_minus_cos_between(a: Float[Array, "3"], b: Float[Array, "3"]) -> Float[A
 def luminance(rgb: Float[Array, "... 3"]) -> Float[Array, "..."]:
     """Rec. 709 luminance of linear RGB."""
     return 0.2126 * rgb[..., 0] + 0.7152 * rgb[..., 1] + 0.0722 * rgb[..., 2]
+
+
+# ---------------------------------------------------------------- vectorizable trigonometry (polynomials, float32)
+# XLA on a CPU evaluates jnp.sin / cos / tan / arctan2 as scalar library calls (5-17 ns per element on the benchmark
+# machine, against 0.3-0.5 ns for exp, sqrt or a polynomial; docs/bench/PROFILE.md). The paths' angles need float32
+# accuracy only, so these use the Cephes single-precision polynomials (S. Moshier), which XLA vectorizes.
+
+_PIO4_1, _PIO4_2, _PIO4_3 = 0.78515625, 2.4187564849853515625e-4, 3.77489497744594108e-8  # pi/4 in three parts
+_FOUR_OVER_PI = 1.27323954473516
+
+
+def sincos(x: Float[Array, "..."]) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
+    """`(sin x, cos x)` for float32 |x| <= 1e4 (radians): octant reduction (Cody-Waite, pi/4 in three parts) and
+    Cephes' minimax polynomials on [-pi/4, pi/4]; max error ~1.5e-7 for |x| <= 2 pi (`tests/test_math.py`).
+    Differentiable (the derivative of the polynomial, within ~1e-6 of cos / -sin)."""
+    x = jnp.asarray(x, jnp.float32)
+    ax = jnp.abs(x)
+    j = jnp.floor(ax * _FOUR_OVER_PI).astype(jnp.int32)
+    j = j + (j & 1)  # even octant index: reduce to [-pi/4, pi/4]
+    y = j.astype(jnp.float32)
+    r = ((ax - y * _PIO4_1) - y * _PIO4_2) - y * _PIO4_3
+    z = r * r
+    ps = ((-1.9515295891e-4 * z + 8.3321608736e-3) * z - 1.6666654611e-1) * z * r + r
+    pc = ((2.443315711809948e-5 * z - 1.388731625493765e-3) * z + 4.166664568298827e-2) * z * z - 0.5 * z + 1.0
+    q = (j >> 1) & 3  # quadrant of |x|
+    swap = (q & 1) == 1
+    s = jnp.where(swap, pc, ps)
+    c = jnp.where(swap, ps, pc)
+    s = jnp.where((q == 2) | (q == 3), -s, s)
+    c = jnp.where((q == 1) | (q == 2), -c, c)
+    return jnp.where(x < 0, -s, s), c
+
+
+def tan(x: Float[Array, "..."]) -> Float[Array, "..."]:
+    """`tan x` for |x| < pi/2 as `sin x / cos x` from `sincos` (relative error ~3e-7 away from +-pi/2)."""
+    s, c = sincos(x)
+    return s / c
+
+
+def atan2(y: Float[Array, "..."], x: Float[Array, "..."]) -> Float[Array, "..."]:
+    """`arctan2(y, x)` in [-pi, pi] (float32): Cephes' `atanf` polynomial after reduction to |t| <= tan(pi/8); max
+    error ~2.5e-7 rad; `atan2(0, 0) = 0` and infinities follow numpy. Differentiable away from (0, 0), with a
+    finite gradient there (double `where`)."""
+    y = jnp.asarray(y, jnp.float32)
+    x = jnp.asarray(x, jnp.float32)
+    ay, ax = jnp.abs(y), jnp.abs(x)
+    big = jnp.maximum(ay, ax)
+    ok = big > 0
+    both_inf = jnp.isinf(ay) & jnp.isinf(ax)
+    # ratio in [0, 1]: atan of min/max, then reflect (double where: no 0/0 or inf/inf in either branch)
+    t = jnp.where(ok & ~both_inf, jnp.minimum(ay, ax) / jnp.where(ok & ~both_inf, big, 1.0), 1.0)
+    hi = t > 0.4142135623730950
+    u = jnp.where(hi, (t - 1.0) / (t + 1.0), t)
+    z = u * u
+    a = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z - 3.33329491539e-1) * z * u + u
+    a = jnp.where(hi, a + 0.25 * PI, a)
+    a = jnp.where(ay > ax, 0.5 * PI - a, a)
+    a = jnp.where(x < 0, PI - a, a)
+    a = jnp.where(ok, a, jnp.where(jnp.signbit(x), PI, 0.0))  # atan2(+-0, -0) = +-pi, atan2(+-0, +0) = +-0
+    return jnp.where(jnp.signbit(y), -a, a)
