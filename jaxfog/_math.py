@@ -147,7 +147,7 @@ def sincos(x: Float[Array, "..."]) -> tuple[Float[Array, "..."], Float[Array, ".
     c = jnp.where(swap, ps, pc)
     s = jnp.where((q == 2) | (q == 3), -s, s)
     c = jnp.where((q == 1) | (q == 2), -c, c)
-    return jnp.where(x < 0, -s, s), c
+    return jnp.where(jnp.signbit(x), -s, s), c
 
 
 def tan(x: Float[Array, "..."]) -> Float[Array, "..."]:
@@ -163,17 +163,18 @@ def atan2(y: Float[Array, "..."], x: Float[Array, "..."]) -> Float[Array, "..."]
     y = jnp.asarray(y, jnp.float32)
     x = jnp.asarray(x, jnp.float32)
     ay, ax = jnp.abs(y), jnp.abs(x)
-    big = jnp.maximum(ay, ax)
+    steep = ay > ax
+    big, small = jnp.where(steep, ay, ax), jnp.where(steep, ax, ay)  # not max/min: their gradient halves at ties
     ok = big > 0
     both_inf = jnp.isinf(ay) & jnp.isinf(ax)
-    # ratio in [0, 1]: atan of min/max, then reflect (double where: no 0/0 or inf/inf in either branch)
-    t = jnp.where(ok & ~both_inf, jnp.minimum(ay, ax) / jnp.where(ok & ~both_inf, big, 1.0), 1.0)
+    # ratio in [0, 1]: atan of small/big, then reflect (double where: no 0/0 or inf/inf in either branch)
+    t = jnp.where(ok & ~both_inf, small / jnp.where(ok & ~both_inf, big, 1.0), 1.0)
     hi = t > 0.4142135623730950
     u = jnp.where(hi, (t - 1.0) / (t + 1.0), t)
     z = u * u
     a = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z - 3.33329491539e-1) * z * u + u
     a = jnp.where(hi, a + 0.25 * PI, a)
-    a = jnp.where(ay > ax, 0.5 * PI - a, a)
+    a = jnp.where(steep, 0.5 * PI - a, a)
     a = jnp.where(x < 0, PI - a, a)
     a = jnp.where(ok, a, jnp.where(jnp.signbit(x), PI, 0.0))  # atan2(+-0, -0) = +-pi, atan2(+-0, +0) = +-0
     return jnp.where(jnp.signbit(y), -a, a)
