@@ -252,8 +252,6 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
     lam = float(options.light_lobe) if (delta_lights and not reparam) else 0.0
     n_delta = len(delta_lights)
     lam_d = float(options.distance_mix) if (use_equiangular and not reparam) else 0.0
-    if lam > 0:
-        light_pos = jnp.stack([lt.position for lt in delta_lights])
     max_depth = scene.max_depth
     if has_medium:
         sigma_t, sigma_s, g = med.sigma_t, med.sigma_s, med.g
@@ -286,12 +284,19 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             L = L + jnp.where(ok & vis & (pdf > 0), c, 0.0)
         return L
 
+    def pick(values, u):
+        """`values[i]` for the light `i = floor(u n)` drawn uniformly; no per-lane gather (slow on a CPU) when there
+        is one light."""
+        if len(values) == 1:
+            return values[0]
+        i = jnp.minimum((u * len(values)).astype(jnp.int32), len(values) - 1)
+        return jnp.stack(values)[i]
+
     def lobe_sample(x, U_b):
-        i = jnp.minimum((U_b[5] * len(delta_lights)).astype(jnp.int32), len(delta_lights) - 1)
-        return light_lobe_sample(U_b[1:3], x, light_pos[i])
+        return light_lobe_sample(U_b[1:3], x, pick([lt.position for lt in delta_lights], U_b[5]))
 
     def lobe_pdf(w, x):
-        return sum(light_lobe_pdf(w, x, light_pos[i]) for i in range(len(delta_lights))) / len(delta_lights)
+        return sum(light_lobe_pdf(w, x, lt.position) for lt in delta_lights) / len(delta_lights)
 
     def body(state: PathState, xs):
         b, U_b = xs
@@ -325,9 +330,8 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             if lam_d > 0:
                 # the vertex distance is drawn from a mixture: truncated exponential, or equiangular toward a light
                 # (the path then continues from near the light often enough to make the 1/r light there cheap)
-                i_l = jnp.minimum((U_b[7] * n_delta).astype(jnp.int32), n_delta - 1)
-                te_i = jnp.stack(eq_t)[i_l]
-                valid_i = jnp.stack([st[4] for st in eq_setups])[i_l]
+                te_i = pick(eq_t, U_b[7])
+                valid_i = pick([st[4] for st in eq_setups], U_b[7])
                 t = jnp.where((U_b[6] < lam_d) & valid_i, te_i, t)
             t = jnp.where(is_med, t, 0.0)
 
