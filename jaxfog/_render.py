@@ -18,8 +18,8 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ._random import uniforms
 from ._integrator import ESTIMATORS, Options, make_proposal, n_dims, n_iterations, trace_path
+from ._random import uniforms
 from ._scene import Scene, pack
 
 DEFAULT_BATCH_PATHS = 1 << 16
