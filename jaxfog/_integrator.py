@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from . import _medium as M
-from ._bsdf import cosine_sample, fresnel_dielectric, reflect, refract
+from ._bsdf import fresnel_dielectric, reflect, refract
 from ._lights import AreaLight, SpotLight, delta_light_radiant_intensity
 from ._math import INV_PI, PI, cross, dot, one_minus_cos_between, safe_div, safe_normalize, safe_sqrt
 from ._phase import hg_pdf, hg_sample
@@ -50,7 +50,7 @@ class Options(NamedTuple):
     estimator: str = "detached"
     equiangular: bool = True
     light_lobe: float = 0.3
-    distance_mix: float = 0.3
+    distance_mix: float = 0.15
 
 
 class PathState(NamedTuple):
@@ -221,20 +221,35 @@ def equiangular_pdf(t, delta, D, th_a, th_b, valid):
     return jnp.where(inside, D / (jnp.where(valid, th_b - th_a, 1.0) * (D * D + r * r)), 0.0)
 
 
+def light_lobe_cos(u, x, light_pos):
+    """Polar part of `light_lobe_sample`: `(1 - cos alpha, 1 + cos alpha, axis)` for `alpha = pi (1 - sqrt(1 - u))`,
+    u in [0, 1): the inverse of the lobe's polar cdf `1 - (1 - alpha / pi)^2`."""
+    sin_h, cos_h = sincos(0.5 * PI * (1.0 - safe_sqrt(1.0 - u)))
+    return 2.0 * sin_h * sin_h, 2.0 * cos_h * cos_h, safe_normalize(light_pos - x)
+
+
 def light_lobe_sample(u, x, light_pos):
-    """Direction from `x` uniform in the angle alpha to the direction toward `light_pos` (alpha = pi u[0])."""
-    a = safe_normalize(light_pos - x)
-    half = 0.5 * PI * u[0]
-    sin_h, cos_h = sincos(half)
-    return direction_from_cos(2.0 * sin_h * sin_h, 2.0 * cos_h * cos_h, 2.0 * PI * u[1], a)
+    """Direction from `x` at angle alpha to the direction toward `light_pos`, with density `2 (pi - alpha) / pi^2`
+    in alpha (u[0]) and uniform in azimuth (phi = 2 pi u[1])."""
+    omc, opc, a = light_lobe_cos(u[0], x, light_pos)
+    return direction_from_cos(omc, opc, 2.0 * PI * u[1], a)
 
 
 def light_lobe_pdf(w, x, light_pos):
-    """Solid-angle pdf of `light_lobe_sample`: `1 / (2 pi^2 sin alpha)`. It cancels the `1/D` of the light
-    scattered along a line passing at distance D from a point light (estimators.md)."""
+    """Solid-angle pdf of `light_lobe_sample`: `(pi - alpha) / (pi^3 sin alpha)` (1/sr; its limit 1/pi^3 at
+    alpha = pi; 0 at exactly alpha = 0, where it is infinite, a direction the sampler produces with probability 0).
+
+    It is the angular profile of the light a point light sends into a line: a ray from `x` leaving at angle alpha
+    to the light passes it at `D = r sin alpha` and, unattenuated and isotropically scattered, collects light
+    `(pi - alpha) / D` (the angle the ray subtends at the light over D). So the lobe cancels the `1/D` of the light
+    scattered along a segment passing near a point light (estimators.md), for any direction the mixture produces."""
     a = safe_normalize(light_pos - x)
     sin_a = safe_sqrt(jnp.sum(cross(w, a) ** 2))
-    return safe_div(1.0, 2.0 * PI * PI * sin_a)
+    beta = atan2(sin_a, -dot(w, a))  # pi - alpha, accurate near alpha = pi
+    # double where: beta / sin(beta) -> 1 at beta = 0 (alpha = pi); beta = pi with sin_a = 0 (alpha = 0) gives 0
+    ok = sin_a > 0
+    ratio = jnp.where(ok, beta / jnp.where(ok, sin_a, 1.0), jnp.where(beta < 1.0, 1.0, 0.0))
+    return ratio / PI ** 3
 
 
 # ------------------------------------------------------------------------------------------------------- the tracer
@@ -291,9 +306,6 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             return values[0]
         i = jnp.minimum((u * len(values)).astype(jnp.int32), len(values) - 1)
         return jnp.stack(values)[i]
-
-    def lobe_sample(x, U_b):
-        return light_lobe_sample(U_b[1:3], x, pick([lt.position for lt in delta_lights], U_b[5]))
 
     def lobe_pdf(w, x):
         return sum(light_lobe_pdf(w, x, lt.position) for lt in delta_lights) / len(delta_lights)
@@ -381,43 +393,45 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
         p_s = state.o + jnp.where(hit, s_hit, 0.0) * state.d
         if has_medium:
             p_m = state.o + t * state.d
-        # ---- the light-angle lobe: one lobe sample and one lobe pdf at this bounce's vertex, medium or surface (the
-        #      two vertex kinds draw their directions from the same uniforms, and only one of them is used)
+        # ---- the scattering direction: one `direction_from_cos` per lane, whichever technique drew it (the medium's
+        #      HG lobe around d, the diffuse cosine lobe around n, or the light-angle lobe around the light). All draw
+        #      the polar angle from U_b[1] and the azimuth from U_b[2]; only the lane's (1 -+ cos, axis) differ.
+        cands = []  # (1 - cos, 1 + cos, axis), the last one the default
+        if has_medium:
+            omc_h, opc_h = hg_sample(U_b[1], prop.g_hat)
+            cands.append((is_med, omc_h, opc_h, state.d))
+        if DIFFUSE in kinds:
+            z_c = safe_sqrt(1.0 - U_b[1])  # cos theta of the cosine lobe; 1 - cos = u / (1 + cos) without cancellation
+            cands.append((None, safe_div(U_b[1], 1.0 + z_c), 1.0 + z_c, n))
         if lam > 0:
             p_lobe = jnp.where(is_med, p_m, p_s) if has_medium else p_s
             take_lobe = U_b[4] < lam
-            lobe_dir = lobe_sample(p_lobe, U_b)
-            wo_lobe_v = []
-            if has_medium:
-                omc0, opc0 = hg_sample(U_b[1], prop.g_hat)
-                wo_m_lobe = jnp.where(take_lobe, lobe_dir, direction_from_cos(omc0, opc0, 2.0 * PI * U_b[2], state.d))
-                wo_lobe_v.append(wo_m_lobe)
-            if DIFFUSE in kinds:
-                wo_d_cos, _ = cosine_sample(U_b[1:3], n)
-                wo_d_lobe = jnp.where(take_lobe, lobe_dir, wo_d_cos)
-                wo_lobe_v.append(wo_d_lobe)
-            wo_v = jnp.where(is_med, *wo_lobe_v) if len(wo_lobe_v) == 2 else wo_lobe_v[0] if wo_lobe_v else lobe_dir
+            omc_l, opc_l, axis_l = light_lobe_cos(U_b[1], p_lobe, pick([lt.position for lt in delta_lights], U_b[5]))
+            cands.insert(0, (take_lobe, omc_l, opc_l, axis_l))
+        if cands:
+            _, omc_v, opc_v, axis_v = cands[-1]
+            for mask, omc_c, opc_c, axis_c in reversed(cands[:-1]):
+                omc_v, opc_v = jnp.where(mask, omc_c, omc_v), jnp.where(mask, opc_c, opc_v)
+                axis_v = jnp.where(mask, axis_c, axis_v)
+            wo_v = direction_from_cos(omc_v, opc_v, 2.0 * PI * U_b[2], axis_v)
+        if lam > 0:
             lobe_p = lobe_pdf(wo_v, p_lobe)
 
         # ---- medium vertex
         if has_medium:
             beta_m = state.beta * w_med
 
+            wo_m = wo_v
             if reparam:  # the direction carries d/dg; its weight p_g / p_g is 1
-                omc, opc = hg_sample(U_b[1], prop.g_hat)
-                wo_m = direction_from_cos(omc, opc, 2.0 * PI * U_b[2], state.d)
-                pdf_m = hg_pdf(omc, prop.g_hat)
+                pdf_m = hg_pdf(omc_h, prop.g_hat)
                 beta_m_next = beta_m
             elif lam > 0:
-                wo_m = wo_m_lobe
-                omc = one_minus_cos_between(state.d, wo_m)
+                omc = jnp.where(take_lobe, one_minus_cos_between(state.d, wo_m), omc_h)
                 pdf_m = (1.0 - lam) * hg_pdf(omc, prop.g_hat) + lam * lobe_p
                 beta_m_next = beta_m * hg_pdf(omc, g) / pdf_m
             else:
-                omc, opc = hg_sample(U_b[1], prop.g_hat)
-                wo_m = direction_from_cos(omc, opc, 2.0 * PI * U_b[2], state.d)
-                pdf_m = hg_pdf(omc, prop.g_hat)
-                beta_m_next = beta_m * hg_pdf(omc, g) / pdf_m
+                pdf_m = hg_pdf(omc_h, prop.g_hat)
+                beta_m_next = beta_m * hg_pdf(omc_h, g) / pdf_m
             new["med"] = (p_m, wo_m, beta_m_next, pdf_m)
 
         # ---- surface vertex
@@ -446,13 +460,13 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             R = pk.reflectance[idx]
 
             surf_nee_ok = surf & is_diff & front
+            wo_d = wo_v
             if lam > 0:
-                wo_d = wo_d_lobe
                 cos_o = jnp.maximum(dot(n, wo_d), 0.0)
                 pdf_d = (1.0 - lam) * cos_o * INV_PI + lam * lobe_p
                 beta_d = beta_s * R * safe_div(cos_o * INV_PI, pdf_d)
             else:
-                wo_d, pdf_d = cosine_sample(U_b[1:3], n)
+                pdf_d = z_c * INV_PI
                 beta_d = beta_s * R
             wo_s = jnp.where(is_diff, wo_d, wo_s)
             beta_s_next = jnp.where(is_diff, beta_d, beta_s_next)

@@ -119,8 +119,8 @@ def render(
     estimator: str = "detached",
     proposal=None,
     equiangular: bool = True,
-    light_lobe: float = 0.3,
-    distance_mix: float = 0.3,
+    light_lobe: float = Options().light_lobe,
+    distance_mix: float = Options().distance_mix,
     batch_paths: int = DEFAULT_BATCH_PATHS,
     chunk_paths: int = DEFAULT_CHUNK_PATHS,
     devices: int | None = None,
@@ -135,8 +135,9 @@ def render(
       from the fixed reference `proposal`, a `HomogeneousMedium`; a smooth deterministic function of the parameters
       for a fixed key). See `estimators.md`.
     - `equiangular`: equiangular sampling toward point and spot lights, MIS-combined with free flight.
-    - `light_lobe`: probability (in [0, 1)) of sampling scattering directions uniformly in the angle to a point/spot
-      light instead of from the phase function / cosine lobe; `distance_mix`: probability of placing a path's medium
+    - `light_lobe`: probability (in [0, 1); default 0.3) of sampling scattering directions from the light-angle lobe
+      (density `2 (pi - alpha) / pi^2` in the angle alpha to a point/spot light) instead of from the phase function /
+      cosine lobe; `distance_mix` (default 0.15): probability of placing a path's medium
       vertex by equiangular sampling instead of free flight (needs `equiangular`). Neither is used by "reparam".
     - `batch_paths`: paths per compiled call (memory bound); `progress(done_spp, spp)` is called after each batch.
     - `chunk_paths`: paths traced together in one vectorized pass (speed only: the image changes at float32

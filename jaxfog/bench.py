@@ -63,12 +63,12 @@ STRATEGIES: dict[str, dict] = {
     "free_flight": dict(equiangular=False, light_lobe=0.0, distance_mix=0.0),
     "equiangular": dict(equiangular=True, light_lobe=0.0, distance_mix=0.0),
     "eq+lobe": dict(equiangular=True, light_lobe=0.3, distance_mix=0.0),
-    "default": dict(equiangular=True, light_lobe=0.3, distance_mix=0.3),
+    "default": dict(equiangular=True, light_lobe=0.3, distance_mix=0.15),
 }
 """Sampling strategies, each adding one technique to the previous: plain free flight with light sampling (NEE) at
 every vertex; + equiangular sampling toward the delta lights on every segment (clipped to the spot cone, MIS with free
-flight); + the light-angle direction lobe (30%); + the equiangular/free-flight mixture for path vertices (30%), which
-is `render`'s default."""
+flight); + the light-angle direction lobe (30%); + the equiangular/free-flight mixture for path vertices (15%), which
+is `render`'s default (`tests/test_bench.py` checks that it is)."""
 
 DEFAULT_STRATEGY = "default"
 SCENE_DIR = Path(__file__).resolve().parent.parent / "data_synthetic" / "scenes"
