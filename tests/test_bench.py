@@ -20,6 +20,16 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 # ----------------------------------------------------------------------------------------------------- statistics
+def test_default_strategy_is_renders_default():
+    """The benchmark's "default" row measures what `jaxfog.render` does when called without options."""
+    import inspect
+
+    from jaxfog import render
+
+    defaults = {k: v.default for k, v in inspect.signature(render).parameters.items()}
+    assert bench.STRATEGIES[bench.DEFAULT_STRATEGY] == {k: defaults[k] for k in bench.STRATEGIES["default"]}
+
+
 def test_time_to_rmse_interpolates_and_extrapolates_on_an_inverse_sqrt_curve():
     t = np.array([1.0, 2.0, 4.0, 8.0])
     r = 0.8 / np.sqrt(t)
