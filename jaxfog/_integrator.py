@@ -244,8 +244,9 @@ def light_lobe_pdf(w, x, light_pos):
     `(pi - alpha) / D` (the angle the ray subtends at the light over D). So the lobe cancels the `1/D` of the light
     scattered along a segment passing near a point light (estimators.md), for any direction the mixture produces."""
     a = safe_normalize(light_pos - x)
-    sin_a = safe_sqrt(jnp.sum(cross(w, a) ** 2))
-    beta = atan2(sin_a, -dot(w, a))  # pi - alpha, accurate near alpha = pi
+    omc = one_minus_cos_between(w, a)
+    sin_a = safe_sqrt(omc * jnp.maximum(2.0 - omc, 0.0))
+    beta = atan2(sin_a, omc - 1.0)  # pi - alpha, accurate near alpha = pi
     # double where: beta / sin(beta) -> 1 at beta = 0 (alpha = pi); beta = pi with sin_a = 0 (alpha = 0) gives 0
     ok = sin_a > 0
     ratio = jnp.where(ok, beta / jnp.where(ok, sin_a, 1.0), jnp.where(beta < 1.0, 1.0, 0.0))

@@ -8,6 +8,7 @@ value and gradient at its edge in `tests/test_math.py`.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 PI = jnp.pi
@@ -83,9 +84,18 @@ def coordinate_frame(n: Float[Array, "3"]) -> tuple[Float[Array, "3"], Float[Arr
     sign = jnp.where(n[2] >= 0, 1.0, -1.0)
     a = -1.0 / (sign + n[2])
     b = n[0] * n[1] * a
-    s = jnp.stack([1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]])
-    t = jnp.stack([b, sign + n[1] * n[1] * a, -n[1]])
+    s = _vec3(1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0])
+    t = _vec3(b, sign + n[1] * n[1] * a, -n[1])
     return s, t
+
+
+_E = np.eye(3, dtype=np.float32)
+
+
+def _vec3(x, y, z):
+    """The 3-vector `(x, y, z)` from scalars, as a sum of scaled unit vectors (elementwise for XLA, where
+    `jnp.stack` of per-lane scalars becomes a slow concatenation under `vmap`)."""
+    return x * _E[0] + y * _E[1] + z * _E[2]
 
 
 def to_world(local: Float[Array, "3"], n: Float[Array, "3"]) -> Float[Array, "3"]:
@@ -104,8 +114,8 @@ def direction_from_cos(
     sin_theta = safe_sqrt(one_minus_cos * one_plus_cos)
     cos_theta = 0.5 * (one_plus_cos - one_minus_cos)
     sin_phi, cos_phi = sincos(phi)
-    local = jnp.stack([sin_theta * cos_phi, sin_theta * sin_phi, cos_theta])
-    return to_world(local, axis)
+    s, t = coordinate_frame(axis)
+    return (sin_theta * cos_phi) * s + (sin_theta * sin_phi) * t + cos_theta * axis
 
 
 def one_minus_cos_between(a: Float[Array, "3"], b: Float[Array, "3"]) -> Float[Array, ""]:
