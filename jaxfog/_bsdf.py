@@ -10,7 +10,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._math import INV_PI, PI, safe_sqrt, sincos, to_world
+from ._math import safe_sqrt
 
 
 def _rgb(x) -> Float[Array, "3"]:
@@ -49,14 +49,12 @@ class Glass(AbstractBSDF):
     ext_ior: Float[Array, ""] = eqx.field(converter=_scalar, default=1.0)
 
 
-def cosine_sample(u: Float[Array, "2"], n: Float[Array, "3"]) -> tuple[Float[Array, "3"], Float[Array, ""]]:
-    """Cosine-weighted direction around unit `n`; returns `(wo, pdf)` with `pdf = cos / pi` (1/sr)."""
-    r = jnp.sqrt(u[0])
-    phi = 2.0 * PI * u[1]
-    z = safe_sqrt(1.0 - u[0])
-    sin_phi, cos_phi = sincos(phi)
-    wo = to_world(jnp.stack([r * cos_phi, r * sin_phi, z]), n)
-    return wo, z * INV_PI
+def cosine_cos(u: Float[Array, ""]) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """Polar part of cosine-weighted sampling around a normal: `(1 - cos theta, 1 + cos theta)` for u in [0, 1)
+    (`cos theta = sqrt(1 - u)`, pdf `cos theta / pi` over directions; with a uniform azimuth,
+    `_math.direction_from_cos` makes the direction). `1 - cos = u / (1 + cos)` has no cancellation."""
+    z = safe_sqrt(1.0 - u)
+    return u / (1.0 + z), 1.0 + z
 
 
 def reflect(d: Float[Array, "3"], n: Float[Array, "3"]) -> Float[Array, "3"]:

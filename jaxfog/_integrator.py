@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from . import _medium as M
-from ._bsdf import fresnel_dielectric, reflect, refract
+from ._bsdf import cosine_cos, fresnel_dielectric, reflect, refract
 from ._lights import AreaLight, SpotLight, delta_light_radiant_intensity
 from ._math import INV_PI, PI, cross, dot, one_minus_cos_between, safe_div, safe_normalize, safe_sqrt
 from ._phase import hg_pdf, hg_sample
@@ -402,8 +402,8 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
             omc_h, opc_h = hg_sample(U_b[1], prop.g_hat)
             cands.append((is_med, omc_h, opc_h, state.d))
         if DIFFUSE in kinds:
-            z_c = safe_sqrt(1.0 - U_b[1])  # cos theta of the cosine lobe; 1 - cos = u / (1 + cos) without cancellation
-            cands.append((None, safe_div(U_b[1], 1.0 + z_c), 1.0 + z_c, n))
+            omc_cos, opc_cos = cosine_cos(U_b[1])
+            cands.append((None, omc_cos, opc_cos, n))
         if lam > 0:
             p_lobe = jnp.where(is_med, p_m, p_s) if has_medium else p_s
             take_lobe = U_b[4] < lam
@@ -467,7 +467,7 @@ def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d,
                 pdf_d = (1.0 - lam) * cos_o * INV_PI + lam * lobe_p
                 beta_d = beta_s * R * safe_div(cos_o * INV_PI, pdf_d)
             else:
-                pdf_d = z_c * INV_PI
+                pdf_d = (opc_cos - 1.0) * INV_PI  # cos theta / pi
                 beta_d = beta_s * R
             wo_s = jnp.where(is_diff, wo_d, wo_s)
             beta_s_next = jnp.where(is_diff, beta_d, beta_s_next)
