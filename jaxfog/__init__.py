@@ -1,22 +1,36 @@
 """jaxfog: a differentiable volumetric path tracer for homogeneous fog, in JAX.
 
 Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror`, `Glass`, `PointLight`,
-`SpotLight`, `AreaLight`, `HenyeyGreenstein`, `HomogeneousMedium`, `Scene`), `render`, scene files
+`SpotLight`, `AreaLight`, `HenyeyGreenstein`, `Rayleigh`, `HomogeneousMedium`, `Scene`) and their interfaces
+(`AbstractBSDF`, `AbstractLobeBSDF`, `AbstractLight`, `AbstractPointLikeLight`, `AbstractPhaseFunction`,
+`AbstractMedium`), `render` with its `SamplingOptions`, scene files
 (`load_scene`, `SceneError`) and image I/O (`write_exr`, `read_exr`, `write_png`).
 """
 
-from ._bsdf import AbstractBSDF as AbstractBSDF, Diffuse as Diffuse, Glass as Glass, Mirror as Mirror
+from ._bsdf import (
+    AbstractBSDF as AbstractBSDF,
+    AbstractLobeBSDF as AbstractLobeBSDF,
+    Diffuse as Diffuse,
+    Glass as Glass,
+    Mirror as Mirror,
+)
 from ._camera import Camera as Camera
 from ._devices import use_cpu_cores as use_cpu_cores
 from ._image import read_exr as read_exr, write_exr as write_exr, write_png as write_png
+from ._integrator import SamplingOptions as SamplingOptions
 from ._lights import (
     AbstractLight as AbstractLight,
+    AbstractPointLikeLight as AbstractPointLikeLight,
     AreaLight as AreaLight,
     PointLight as PointLight,
     SpotLight as SpotLight,
 )
-from ._medium import HomogeneousMedium as HomogeneousMedium
-from ._phase import HenyeyGreenstein as HenyeyGreenstein
+from ._medium import AbstractMedium as AbstractMedium, HomogeneousMedium as HomogeneousMedium
+from ._phase import (
+    AbstractPhaseFunction as AbstractPhaseFunction,
+    HenyeyGreenstein as HenyeyGreenstein,
+    Rayleigh as Rayleigh,
+)
 from ._render import render as render
 from ._scene import Scene as Scene
 from ._scene_io import SceneError as SceneError, load_scene as load_scene

@@ -1,30 +1,48 @@
 """The volumetric path tracer for one camera path: written for one ray, `vmap`-ed once in `_render`.
 
-The bounce body reads as its stages: intersect -> free flight (medium or surface branch) -> direct light along the
-segment (equiangular, MIS with the free-flight vertex) -> direct light at the vertex (NEE to every light) -> scatter
-(phase function or BSDF) -> update `PathState`. What a scene lacks (fog, glass, area lights, delta lights) is decided
-in Python and never compiled.
+A bounce is a list of stages, each a module-level function of named structs:
 
-Estimators (see `_medium` and `estimators.md`) change only the *sampling* parameters `Proposal(sigma_hat, g_hat)`:
-detached (`stop_gradient` of the medium's values), a caller's fixed proposal, or the medium's own values
-(reparameterized: sampled distances and directions move with the parameters). Every weight is `f(theta) / pdf`.
+    intersect -> free_flight -> direct_on_segment -> next_direction -> medium_vertex / surface_vertex
+              -> direct_at_vertex -> update
+
+The stages talk to the scene only through the interfaces of its parts: the medium (`AbstractMedium`: free flight,
+weights, transmittance, scattering, phase function), the lights (`AbstractLight.sample_li` / `pdf_li`, the point-like
+lights' `lit_interval` and `position`, area lights' `emitted`), the BSDFs (`sample` / `eval` / `pdf`) and the warps of
+`_sampling`. What a scene lacks (fog, a kind of BSDF, area or point lights) is decided in Python and never compiled.
+
+Estimators (`docs/estimators.md`) change only the *sampler*, the medium whose values decide where paths go
+(`sampling_medium`): a detached copy of the medium, a caller's fixed proposal, or the medium itself (reparameterized:
+sampled distances and directions move with the parameters). Every weight is `f(theta) / pdf`.
+
+Random numbers: each bounce reads its uniforms through a `Layout` of named dimensions built from the scene's
+structure; no stage uses a numeric slot.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import dataclasses
+from typing import Callable, NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
-from . import _medium as M
-from ._bsdf import cosine_cos, fresnel_dielectric, reflect, refract
-from ._lights import AreaLight, SpotLight, delta_light_radiant_intensity
-from ._math import INV_PI, PI, cross, dot, one_minus_cos_between, safe_div, safe_normalize, safe_sqrt
-from ._phase import hg_pdf, hg_sample
-from ._math import atan2, direction_from_cos, sincos, tan
-from ._scene import DIFFUSE, EMITTER, GLASS, MIRROR, Packed, Scene
+from ._bsdf import AbstractLobeBSDF
+from ._math import dot, one_minus_cos_between, safe_div, safe_normalize
+from ._medium import AbstractMedium
+from ._sampling import (
+    Equiangular,
+    Polar,
+    equiangular_pdf,
+    equiangular_sample,
+    equiangular_setup,
+    light_lobe_cos,
+    light_lobe_pdf,
+    power_heuristic,
+    to_direction,
+)
+from ._scene import EMITTER_KIND, Packed, Scene
 from ._shapes import intersect_rectangles, intersect_spheres
 
 EPS_OFFSET = 1e-4
@@ -33,24 +51,129 @@ EPS_OFFSET = 1e-4
 ESTIMATORS = ("detached", "reparam", "proposal")
 
 
-class Proposal(NamedTuple):
-    """Sampling parameters: `sigma_hat` (scalar sampling extinction, 1/scene unit) and `g_hat` (HG g used to sample)."""
+# ----------------------------------------------------------------------------------------------------- options
+class SamplingOptions(eqx.Module):
+    """How paths are sampled (static: each combination compiles its own program; values are checked when built).
 
-    sigma_hat: Float[Array, ""]
-    g_hat: Float[Array, ""]
+    **Fields:**
+    - `estimator`: how derivatives are estimated (values agree in expectation): `"detached"` (default; detached
+      sampling, attached weights), `"reparam"` (reparameterized free flight and phase sampling), `"proposal"`
+      (sampling from a fixed reference medium passed to `render(proposal=...)`). See `docs/estimators.md`.
+    - `equiangular`: equiangular sampling of each segment toward point and spot lights, MIS-combined with free
+      flight (default True).
+    - `light_lobe`: probability in [0, 1) of sampling a scattering direction from the light-angle lobe (density
+      `2 (pi - alpha) / pi^2` in the angle alpha to a point/spot light) instead of from the phase function / BSDF
+      lobe (default 0.3; 0 disables it; never used by "reparam", whose directions must move with the parameters).
+    - `distance_mix`: probability in [0, 1) of placing the path's medium vertex by equiangular sampling instead of
+      free flight (default 0.15; needs `equiangular`; not used by "reparam").
+    """
+
+    estimator: str = eqx.field(static=True, default="detached")
+    equiangular: bool = eqx.field(static=True, default=True)
+    light_lobe: float = eqx.field(static=True, default=0.3)
+    distance_mix: float = eqx.field(static=True, default=0.15)
+
+    def __check_init__(self):
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"SamplingOptions.estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+        if not isinstance(self.equiangular, bool):
+            raise TypeError(f"SamplingOptions.equiangular must be True or False, got {self.equiangular!r}")
+        for name in ("light_lobe", "distance_mix"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < 1.0:
+                raise ValueError(f"SamplingOptions.{name} must be a number in [0, 1), got {v!r}")
 
 
-class Options(NamedTuple):
-    """Static integrator options (hashable): estimator name; equiangular sampling on/off; `light_lobe`: probability
-    of sampling a scattering direction from the light-angle lobe instead of the phase function / cosine lobe
-    (0 disables it; never used by the "reparam" estimator, whose directions must move with g); `distance_mix`:
-    probability of placing the path's medium vertex by equiangular sampling instead of free flight (needs
-    `equiangular`; not used by "reparam")."""
+def sampling_medium(medium: AbstractMedium | None, options: SamplingOptions, proposal=None):
+    """The sampler for the chosen estimator: the medium whose values decide distances, branches and phase samples."""
+    if medium is None:
+        return None
+    if options.estimator == "reparam":
+        return medium
+    if options.estimator == "detached":
+        return jax.lax.stop_gradient(medium)
+    if proposal is None:
+        raise ValueError('estimator="proposal" needs proposal=<a medium of the same kind with reference values>')
+    if type(proposal) is not type(medium):
+        raise TypeError(f"proposal must be a {type(medium).__name__} like the scene's medium, "
+                        f"got {type(proposal).__name__}")
+    return jax.lax.stop_gradient(proposal)
 
-    estimator: str = "detached"
-    equiangular: bool = True
-    light_lobe: float = 0.3
-    distance_mix: float = 0.15
+
+# -------------------------------------------------------------------------------------------- random-number layout
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Which uniform of a bounce's row feeds which decision (static, built from the scene's structure).
+
+    Fixed dimensions: `free_flight` (branch and distance), `polar` and `azimuth` (the scattering direction, shared
+    by every technique), `choice` (a BSDF's discrete choice: Fresnel reflection or refraction), `lobe` and
+    `lobe_light` (take the light-angle lobe; which light), `mix` and `mix_light` (place the vertex by equiangular
+    sampling; toward which light). Then `lights[i]`: the first of light i's `n_dims` uniforms (scene order), and
+    `equiangular[j]`: one per point-like light.
+    """
+
+    lights: tuple
+    equiangular: tuple
+    n_dims: int
+    free_flight: int = 0
+    polar: int = 1
+    azimuth: int = 2
+    choice: int = 3
+    lobe: int = 4
+    lobe_light: int = 5
+    mix: int = 6
+    mix_light: int = 7
+
+
+N_FIXED_DIMS = 8
+
+
+def layout(scene: Scene) -> Layout:
+    """The bounce layout of `scene`: 8 fixed dimensions, each light's own, one per point-like light."""
+    starts, k = [], N_FIXED_DIMS
+    for light in scene.lights:
+        starts.append(k)
+        k += light.n_dims
+    eq = tuple(range(k, k + len(scene.point_lights)))
+    return Layout(lights=tuple(starts), equiangular=eq, n_dims=k + len(eq))
+
+
+def n_dims(scene: Scene) -> int:
+    """Uniform random numbers one bounce consumes."""
+    return layout(scene).n_dims
+
+
+def n_iterations(scene: Scene) -> int:
+    """Segments to trace: the last segment (number max_depth) only matters when it can hit an area light."""
+    return scene.max_depth if scene.area_lights else scene.max_depth - 1
+
+
+# ---------------------------------------------------------------------------------------------------- structs
+class Tracer(NamedTuple):
+    """What every stage needs: the scene and its packed geometry, the medium and its sampler, the layout, and the
+    static switches derived from the options and the scene (`lobe`, `mix`: probabilities, 0 when unused)."""
+
+    scene: Scene
+    pk: Packed
+    medium: AbstractMedium | None
+    sampler: AbstractMedium | None
+    layout: Layout
+    reparam: bool
+    equiangular: bool
+    lobe: float
+    mix: float
+
+
+def make_tracer(scene: Scene, pk: Packed, options: SamplingOptions, proposal=None) -> Tracer:
+    has_points = bool(scene.point_lights)
+    reparam = options.estimator == "reparam"
+    eq = options.equiangular and scene.medium is not None and has_points
+    return Tracer(
+        scene=scene, pk=pk, medium=scene.medium, sampler=sampling_medium(scene.medium, options, proposal),
+        layout=layout(scene), reparam=reparam, equiangular=eq,
+        lobe=float(options.light_lobe) if (has_points and not reparam) else 0.0,
+        mix=float(options.distance_mix) if (eq and not reparam) else 0.0,
+    )
 
 
 class PathState(NamedTuple):
@@ -64,33 +187,59 @@ class PathState(NamedTuple):
     in_medium: Array  # bool: outside glass objects, so in the fog
 
 
-def n_dims(scene: Scene) -> int:
-    """Uniform random numbers one bounce consumes."""
-    return 8 + 2 * len(scene.area_lights) + len(scene.delta_lights)
+class Hit(NamedTuple):
+    """The nearest surface along the ray: distance `t` (inf on a miss), shape index `idx`, front normal `n`,
+    `found`, and the point `p` (the ray origin on a miss)."""
+
+    t: Float[Array, ""]
+    idx: Array
+    n: Float[Array, "3"]
+    found: Bool[Array, ""]
+    p: Float[Array, "3"]
 
 
-def n_iterations(scene: Scene) -> int:
-    """Segments to trace: the last segment (number max_depth) only matters when it can hit an area light."""
-    return scene.max_depth if scene.area_lights else scene.max_depth - 1
+class Segment(NamedTuple):
+    """The free-flight decision on the segment to the hit: its length `s`, the equiangular samplers `eq` and
+    samples `t_eq` (one per point-like light), the branch probability `q`, `scattered`, the medium vertex's
+    distance `t` and point `p`, its density `pdf` (all techniques), and the two branch weights."""
+
+    s: Float[Array, ""]
+    eq: tuple
+    t_eq: tuple
+    q: Float[Array, ""]
+    scattered: Bool[Array, ""]
+    t: Float[Array, ""]
+    p: Float[Array, "3"]
+    pdf: Float[Array, ""]
+    w_med: Float[Array, "3"]
+    w_surf: Float[Array, "3"]
 
 
-def make_proposal(scene: Scene, options: Options, proposal=None) -> Proposal:
-    """Sampling parameters for the chosen estimator (see module docstring); `proposal` is a medium for "proposal"."""
-    med = scene.medium
-    if med is None:
-        return Proposal(jnp.float32(1.0), jnp.float32(0.0))
-    if options.estimator == "reparam":
-        return Proposal(M.sampling_extinction(med.sigma_t), med.g)
-    if options.estimator == "detached":
-        return jax.lax.stop_gradient(Proposal(M.sampling_extinction(med.sigma_t), med.g))
-    if options.estimator == "proposal":
-        if proposal is None:
-            raise ValueError('estimator="proposal" needs proposal=<HomogeneousMedium with reference sigma_t and g>')
-        return jax.lax.stop_gradient(Proposal(M.sampling_extinction(proposal.sigma_t), proposal.g))
-    raise ValueError(f"estimator must be one of {ESTIMATORS}, got {options.estimator!r}")
+class Direction(NamedTuple):
+    """The bounce's scattering direction `wo` (one construction, whichever technique drew it), the phase sampler's
+    polar sample `phase`, whether the light-angle lobe drew it (`take_lobe`), the lobe's point `x_lobe` and its pdf
+    at `wo` (`lobe_pdf`)."""
+
+    wo: Float[Array, "3"]
+    phase: Polar | None
+    take_lobe: Bool[Array, ""] | None
+    x_lobe: Float[Array, "3"] | None
+    lobe_pdf: Float[Array, ""] | None
 
 
-# ----------------------------------------------------------------------------------------------------------- geometry
+class Next(NamedTuple):
+    """A vertex's continuation: origin, direction, throughput, specular flag, direction pdf, alive, in_medium."""
+
+    o: Float[Array, "3"]
+    d: Float[Array, "3"]
+    beta: Float[Array, "3"]
+    specular: Bool[Array, ""]
+    pdf: Float[Array, ""]
+    alive: Bool[Array, ""]
+    in_medium: Bool[Array, ""]
+
+
+# -------------------------------------------------------------------------------------------------- geometry
 def _hit_distances(pk: Packed, o, d):
     """Hit distances (> T_MIN, else inf) of the ray `o + t d` with every shape, in global shape order; None if none."""
     ts = []
@@ -101,21 +250,21 @@ def _hit_distances(pk: Packed, o, d):
     return jnp.concatenate(ts) if ts else None
 
 
-def intersect(pk: Packed, o, d):
-    """Nearest hit: `(t, index, normal)`; `t = inf` and index 0 on a miss. The normal is the geometric front normal."""
+def intersect(pk: Packed, o, d) -> Hit:
+    """Nearest hit of the ray `(o, d)`; the normal is the geometric front normal."""
     t_all = _hit_distances(pk, o, d)
     if t_all is None:
-        return jnp.float32(jnp.inf), jnp.int32(0), jnp.array([0.0, 0.0, 1.0], jnp.float32)
+        return Hit(jnp.float32(jnp.inf), jnp.int32(0), jnp.array([0.0, 0.0, 1.0], jnp.float32), jnp.bool_(False), o)
     idx = jnp.argmin(t_all)
     t = t_all[idx]
-    p = o + jnp.where(jnp.isfinite(t), t, 0.0) * d
+    found = jnp.isfinite(t)
+    p = o + jnp.where(found, t, 0.0) * d
     normals = []
     if pk.n_spheres:
         normals.append(safe_normalize(p[None, :] - pk.sph_center))
     if pk.rect_center.shape[0]:
         normals.append(pk.rect_normal)
-    n = jnp.concatenate(normals)[idx]
-    return t, idx, n
+    return Hit(t, idx, jnp.concatenate(normals)[idx], found, p)
 
 
 def occluded(pk: Packed, o, d, dist) -> Array:
@@ -126,429 +275,279 @@ def occluded(pk: Packed, o, d, dist) -> Array:
     return jnp.min(t_all) < dist * (1.0 - 1e-4)
 
 
-def power_heuristic(a, b):
-    """MIS weight `a^2 / (a^2 + b^2)` (0 where both are 0)."""
-    return safe_div(a * a, a * a + b * b)
+def pick(values, u):
+    """`values[i]` for the light `i = floor(u n)` drawn uniformly; no per-lane gather (slow on a CPU) for one."""
+    if len(values) == 1:
+        return values[0]
+    i = jnp.minimum((u * len(values)).astype(jnp.int32), len(values) - 1)
+    return jnp.stack(values)[i]
 
 
-# --------------------------------------------------------------------------------------------------------- lighting
-def delta_incident(light, p):
-    """Unoccluded, untransmitted irradiance factor from a point/spot light at `p`: `(wl, dist, I(-wl) / dist^2)`."""
-    v = light.position - p
-    dist2 = dot(v, v)
-    dist = safe_sqrt(dist2)
-    wl = safe_normalize(v)
-    intensity = delta_light_radiant_intensity(light, -wl)
-    return wl, dist, safe_div(intensity, dist2)
+# ---------------------------------------------------------------------------------------------- free flight
+def vertex_pdf(tr: Tracer, o, d, s, q, eqs, t):
+    """Density of the path's medium vertex at distance `t` on the segment: the free-flight density (branch
+    probability `q` included), mixed with the equiangular densities when the distance mixture is on."""
+    p_ff = tr.sampler.free_flight_pdf(o, d, s, q, t)
+    if tr.mix == 0:
+        return p_ff
+    p_eq = sum(jnp.where(e.valid, equiangular_pdf(e, t), tr.sampler.free_flight_pdf(o, d, s, 1.0, t))
+               for e in eqs) / len(eqs)
+    return (1.0 - tr.mix) * p_ff + tr.mix * q * p_eq
 
 
-def area_sample(light: AreaLight, p, u):
-    """Uniform point on an area light seen from `p`: `(wl, dist, Le (front face only), pdf over solid angle)`."""
-    y = light.center + (u[0] - 0.5) * light.edge_u + (u[1] - 0.5) * light.edge_v
-    v = y - p
-    dist2 = dot(v, v)
-    dist = safe_sqrt(dist2)
-    wl = safe_normalize(v)
-    cos_l = -dot(wl, light.normal)
-    front = cos_l > 0
-    pdf = jnp.where(front, safe_div(dist2, light.area * cos_l), 0.0)
-    return wl, dist, jnp.where(front, light.radiance, 0.0), pdf
+def free_flight(tr: Tracer, state: PathState, hit: Hit, U) -> Segment:
+    """Medium branch (a vertex at `t`) or surface branch; the equiangular set-up of the segment toward each
+    point-like light (its distances do not depend on the medium)."""
+    ly, med, o, d = tr.layout, tr.medium, state.o, state.d
+    s = jnp.minimum(hit.t, med.extent)
+    eqs, t_eq = [], []
+    if tr.equiangular:
+        for j, light in enumerate(tr.scene.point_lights):
+            t0, t1 = light.lit_interval(o, d)
+            e = equiangular_setup(light.position, o, d, jnp.maximum(0.0, t0), jnp.minimum(s, t1))
+            eqs.append(e)
+            t_eq.append(equiangular_sample(e, U[ly.equiangular[j]], s))
+    fl = tr.sampler.sample_free_flight(o, d, s, hit.found, state.in_medium, U[ly.free_flight])
+    t = fl.t
+    if tr.mix > 0:
+        # the vertex distance is drawn from a mixture: free flight, or equiangular toward a light (the path then
+        # continues from near the light often enough to make the 1/r light there cheap)
+        use_eq = (U[ly.mix] < tr.mix) & pick([e.valid for e in eqs], U[ly.mix_light])
+        t = jnp.where(use_eq, pick(t_eq, U[ly.mix_light]), t)
+    t = jnp.where(fl.scattered, t, 0.0)
+    p = o + t * d
+    pdf = vertex_pdf(tr, o, d, s, fl.q, eqs, t)
+    if tr.mix > 0:
+        w_med = med.scattering(p) * safe_div(med.transmittance(o, d, t), pdf)
+    else:
+        w_med = med.collision_weight(tr.sampler, o, d, s, jnp.where(fl.scattered, fl.q, 1.0), t)
+    # double where: on a segment that escapes (no surface) the surface branch is never used, and its weight at
+    # s = extent overflows for a proposal that samples more densely than the medium (0 * inf)
+    on_surf = state.in_medium & hit.found
+    w_surf = jnp.where(on_surf, med.surface_weight(o, d, jnp.where(on_surf, s, 0.0),
+                                                   jnp.where(on_surf, fl.log_one_minus_q, 0.0)), 1.0)
+    return Segment(s, tuple(eqs), tuple(t_eq), fl.q, fl.scattered, t, p, pdf, w_med, w_surf)
 
 
-def area_pdf_hit(light: AreaLight, d, dist):
-    """Solid-angle pdf with which `area_sample` would have produced the direction `d` hitting the light at `dist`."""
-    cos_l = -dot(d, light.normal)
-    return jnp.where(cos_l > 0, safe_div(dist * dist, light.area * cos_l), 0.0)
+def no_flight(hit: Hit) -> Segment:
+    """The segment of a scene without fog: always the surface branch, weight 1."""
+    z, one = jnp.float32(0.0), jnp.ones(3, jnp.float32)
+    return Segment(hit.t, (), (), z, jnp.bool_(False), z, hit.p, z, one, one)
 
 
-def spot_cone_interval(light: SpotLight, o, d):
-    """Interval `[t0, t1]` (possibly empty: t0 > t1; possibly infinite) where the line `o + t d` is inside the spot's
-    cutoff cone (the forward nappe). Outside it the spot sends no light, so equiangular samples are kept inside."""
-    a = light.direction
-    c2 = jnp.cos(jnp.deg2rad(light.cutoff_angle)) ** 2
-    w = o - light.position
-    da, wa = dot(d, a), dot(w, a)
-    A = da * da - c2
-    B = 2.0 * (da * wa - c2 * dot(d, w))
-    C = wa * wa - c2 * dot(w, w)
-    disc = B * B - 4.0 * A * C
-    sq = safe_sqrt(disc)
-    A_safe = jnp.where(jnp.abs(A) > 1e-12, A, 1e-12)
-    r1 = (-B - sq) / (2.0 * A_safe)
-    r2 = (-B + sq) / (2.0 * A_safe)
-    lo, hi = jnp.minimum(r1, r2), jnp.maximum(r1, r2)
-    inf = jnp.inf
-    # A < 0: inside between the roots (one nappe; check which). A > 0: outside the roots, the nappe d points into.
-    mid = 0.5 * (lo + hi)
-    mid_fwd = (wa + mid * da) >= 0
-    t0_neg = jnp.where((disc >= 0) & mid_fwd, lo, inf)
-    t1_neg = jnp.where((disc >= 0) & mid_fwd, hi, -inf)
-    t0_pos = jnp.where(disc >= 0, jnp.where(da > 0, hi, -inf), jnp.where(wa >= 0, -inf, inf))
-    t1_pos = jnp.where(disc >= 0, jnp.where(da > 0, inf, lo), jnp.where(wa >= 0, inf, -inf))
-    neg = A < 0
-    return jnp.where(neg, t0_neg, t0_pos), jnp.where(neg, t1_neg, t1_pos)
+# ----------------------------------------------------------------------------------------------- direct light
+def direct_on_segment(tr: Tracer, state: PathState, seg: Segment, ok) -> Float[Array, "3"]:
+    """Light scattered toward the camera along the segment from each point-like light, at its equiangular sample;
+    MIS (balance heuristic) with the path's own medium vertex."""
+    med, pk, o, d = tr.medium, tr.pk, state.o, state.d
+    L = jnp.zeros(3, jnp.float32)
+    for light, e, te in zip(tr.scene.point_lights, seg.eq, seg.t_eq):
+        p_eq = equiangular_pdf(e, te)
+        xe = o + te * d
+        ls = light.sample_li(xe)
+        vis = ~occluded(pk, xe, ls.wi, ls.dist)
+        f = med.scattering(xe) * med.transmittance(o, d, te) * med.phase.eval(d, ls.wi)
+        use = ok & state.in_medium & e.valid & vis & (p_eq > 0)
+        # double where: an unused sample's MIS denominator can be ~1e-30 (dense fog), whose 1/x^2 overflows
+        p_all = jnp.where(use, p_eq + vertex_pdf(tr, o, d, seg.s, seg.q, seg.eq, te), 1.0)
+        c = state.beta * f * ls.value * med.transmittance(xe, ls.wi, ls.dist) * safe_div(1.0, p_all)
+        L = L + jnp.where(use, c, 0.0)
+    return L
 
 
-def equiangular_setup(light, o, d, s):
-    """Kulla–Fajardo equiangular sampling of `t` in `[ta, tb]` (a sub-interval of `[0, s]`) toward a light's
-    position: returns `(delta, D, theta_a, theta_b, valid)`. For spot lights the interval is clipped to the cone."""
-    c = light.position
-    delta = dot(c - o, d)
-    D = safe_norm_floor(c - o - delta * d)
-    ta, tb = jnp.float32(0.0), s
-    if isinstance(light, SpotLight):
-        c0, c1 = spot_cone_interval(light, o, d)
-        ta, tb = jnp.maximum(ta, c0), jnp.minimum(tb, c1)
-    valid = tb > ta
-    ta = jnp.where(valid, ta, 0.0)
-    tb = jnp.where(valid, tb, 1.0)
-    # float32(pi/2) is above pi/2, where tan flips sign: keep the angles strictly inside (-pi/2, pi/2)
-    half_pi = 1.5707962
-    th_a = jnp.clip(atan2(ta - delta, D), -half_pi, half_pi)
-    th_b = jnp.clip(atan2(tb - delta, D), -half_pi, half_pi)
-    valid = valid & (th_b > th_a)
-    return delta, D, th_a, th_b, valid
+def nee(tr: Tracer, U, p, shadow_o, response: Callable, dir_pdf: Callable, beta, ok, seg: Segment | None):
+    """Next-event estimation from the vertex `p` (one shadow ray per light, from `shadow_o`).
 
-
-def safe_norm_floor(v, floor=1e-7):
-    return jnp.maximum(safe_sqrt(dot(v, v)), floor)
-
-
-def equiangular_pdf(t, delta, D, th_a, th_b, valid):
-    r = t - delta
-    th = atan2(r, D)  # compare angles, not tan(theta) * D, which overflows for rays grazing the light
-    inside = valid & (th >= th_a - 1e-6) & (th <= th_b + 1e-6)
-    return jnp.where(inside, D / (jnp.where(valid, th_b - th_a, 1.0) * (D * D + r * r)), 0.0)
-
-
-def light_lobe_cos(u, x, light_pos):
-    """Polar part of `light_lobe_sample`: `(1 - cos alpha, 1 + cos alpha, axis)` for `alpha = pi (1 - sqrt(1 - u))`,
-    u in [0, 1): the inverse of the lobe's polar cdf `1 - (1 - alpha / pi)^2`."""
-    sin_h, cos_h = sincos(0.5 * PI * (1.0 - safe_sqrt(1.0 - u)))
-    return 2.0 * sin_h * sin_h, 2.0 * cos_h * cos_h, safe_normalize(light_pos - x)
-
-
-def light_lobe_sample(u, x, light_pos):
-    """Direction from `x` at angle alpha to the direction toward `light_pos`, with density `2 (pi - alpha) / pi^2`
-    in alpha (u[0]) and uniform in azimuth (phi = 2 pi u[1])."""
-    omc, opc, a = light_lobe_cos(u[0], x, light_pos)
-    return direction_from_cos(omc, opc, 2.0 * PI * u[1], a)
-
-
-def light_lobe_pdf(w, x, light_pos):
-    """Solid-angle pdf of `light_lobe_sample`: `(pi - alpha) / (pi^3 sin alpha)` (1/sr; its limit 1/pi^3 at
-    alpha = pi; 0 at exactly alpha = 0, where it is infinite, a direction the sampler produces with probability 0).
-
-    It is the angular profile of the light a point light sends into a line: a ray from `x` leaving at angle alpha
-    to the light passes it at `D = r sin alpha` and, unattenuated and isotropically scattered, collects light
-    `(pi - alpha) / D` (the angle the ray subtends at the light over D). So the lobe cancels the `1/D` of the light
-    scattered along a segment passing near a point light (estimators.md), for any direction the mixture produces."""
-    a = safe_normalize(light_pos - x)
-    omc = one_minus_cos_between(w, a)
-    sin_a = safe_sqrt(omc * jnp.maximum(2.0 - omc, 0.0))
-    beta = atan2(sin_a, omc - 1.0)  # pi - alpha, accurate near alpha = pi
-    # double where: beta / sin(beta) -> 1 at beta = 0 (alpha = pi); beta = pi with sin_a = 0 (alpha = 0) gives 0
-    ok = sin_a > 0
-    ratio = jnp.where(ok, beta / jnp.where(ok, sin_a, 1.0), jnp.where(beta < 1.0, 1.0, 0.0))
-    return ratio / PI ** 3
-
-
-# ------------------------------------------------------------------------------------------------------- the tracer
-def trace_path(scene: Scene, pk: Packed, prop: Proposal, options: Options, o, d, U) -> Float[Array, "3"]:
-    """Radiance (RGB) arriving at the camera along the ray `(o, d)`; `U` holds `(n_iterations, n_dims)` uniforms."""
-    med = scene.medium
-    has_medium = med is not None
-    kinds = pk.has
-    has_glass = GLASS in kinds
-    delta_lights = scene.delta_lights
-    area_lights = scene.area_lights
-    n_area = len(area_lights)
-    use_equiangular = options.equiangular and has_medium and bool(delta_lights)
-    reparam = options.estimator == "reparam"
-    lam = float(options.light_lobe) if (delta_lights and not reparam) else 0.0
-    n_delta = len(delta_lights)
-    lam_d = float(options.distance_mix) if (use_equiangular and not reparam) else 0.0
-    max_depth = scene.max_depth
-    if has_medium:
-        sigma_t, sigma_s, g = med.sigma_t, med.sigma_s, med.g
-    area_emitter_index = {j: pk.kinds.shape[0] - n_area + j for j in range(n_area)}
-
-    def transmit(dist):
-        return M.transmittance(sigma_t, dist) if has_medium else jnp.ones(3, jnp.float32)
-
-    def nee(p, shadow_o, response, dir_pdf, beta, ok, U_b, eq_mis=None):
-        """Light sampling from the path vertex `p` (medium or surface; one shadow ray per light).
-
-        `response(wl) -> RGB`: phase value or BRDF x cosine; `dir_pdf(wl)`: pdf with which the vertex's own direction
-        sampling picks `wl` (MIS with area lights); `eq_mis = (setups, t, ff_pdf, is_med)`: balance-heuristic weight
-        against the equiangular technique of the segment, for medium vertices only."""
-        L = jnp.zeros(3, jnp.float32)
-        for i, light in enumerate(delta_lights):
-            wl, dist, E = delta_incident(light, p)
-            vis = ~occluded(pk, shadow_o, wl, dist)
-            c = beta * response(wl) * E * transmit(dist)
-            if eq_mis is not None:
-                setups, t_v, ff_pdf, is_med = eq_mis
-                p_eq = equiangular_pdf(t_v, *setups[i])
-                c = c * jnp.where(is_med, safe_div(ff_pdf, ff_pdf + p_eq), 1.0)
+    `response(wi) -> RGB`: phase value or BSDF x cosine; `dir_pdf(wi)`: the density with which the vertex's own
+    direction sampling picks `wi` (MIS with area lights); `seg`: for a medium vertex with equiangular segments, the
+    balance-heuristic weight against the equiangular technique toward each point-like light."""
+    scene, ly = tr.scene, tr.layout
+    L = jnp.zeros(3, jnp.float32)
+    point_index = {id(lt): j for j, lt in enumerate(scene.point_lights)}
+    order = [i for i, lt in enumerate(scene.lights) if lt.is_delta] + [i for i, lt in enumerate(scene.lights)
+                                                                       if not lt.is_delta]
+    for i in order:
+        light = scene.lights[i]
+        ls = light.sample_li(p, U[ly.lights[i]:ly.lights[i] + light.n_dims])
+        vis = ~occluded(tr.pk, shadow_o, ls.wi, ls.dist)
+        tr_l = tr.medium.transmittance(p, ls.wi, ls.dist) if tr.medium is not None else 1.0
+        c = beta * response(ls.wi) * ls.value * tr_l
+        if light.is_delta:
+            if seg is not None and id(light) in point_index:
+                p_eq = equiangular_pdf(seg.eq[point_index[id(light)]], seg.t)
+                c = c * jnp.where(seg.scattered, safe_div(seg.pdf, seg.pdf + p_eq), 1.0)
             L = L + jnp.where(ok & vis, c, 0.0)
-        for j, light in enumerate(area_lights):
-            wl, dist, Le, pdf = area_sample(light, p, U_b[8 + 2 * j : 10 + 2 * j])
-            vis = ~occluded(pk, shadow_o, wl, dist)
-            w = power_heuristic(pdf, dir_pdf(wl))
-            c = beta * response(wl) * Le * transmit(dist) * safe_div(w, pdf)
-            L = L + jnp.where(ok & vis & (pdf > 0), c, 0.0)
-        return L
-
-    def pick(values, u):
-        """`values[i]` for the light `i = floor(u n)` drawn uniformly; no per-lane gather (slow on a CPU) when there
-        is one light."""
-        if len(values) == 1:
-            return values[0]
-        i = jnp.minimum((u * len(values)).astype(jnp.int32), len(values) - 1)
-        return jnp.stack(values)[i]
-
-    def lobe_pdf(w, x):
-        return sum(light_lobe_pdf(w, x, lt.position) for lt in delta_lights) / len(delta_lights)
-
-    def body(state: PathState, xs):
-        b, U_b = xs
-        nee_ok = state.alive & (b + 2 <= max_depth)
-        s_hit, idx, n = intersect(pk, state.o, state.d)
-        hit = jnp.isfinite(s_hit)
-        L = state.L
-
-        # ---- equiangular set-up of the segment toward each delta light (distances do not depend on the medium)
-        if has_medium:
-            active = state.in_medium
-            s = jnp.minimum(s_hit, med.extent)
-        eq_setups, eq_t = [], []
-        if use_equiangular:
-            for i, light in enumerate(delta_lights):
-                setup = equiangular_setup(light, state.o, state.d, s)
-                delta, D, th_a, th_b, valid = setup
-                th = th_a + U_b[8 + 2 * n_area + i] * (th_b - th_a)
-                te = jnp.clip(jnp.where(valid, delta + D * tan(th), 0.0), 0.0, s)
-                eq_setups.append(setup)
-                eq_t.append(te)
-
-        # ---- free flight: medium branch (vertex at t) or surface branch
-        if has_medium:
-            q, log1mq = M.branch_probability(prop.sigma_hat, s, jnp.where(hit, M.Q_MAX_SURFACE, 1.0))
-            q = jnp.where(active, q, 0.0)
-            u = U_b[0]
-            is_med = active & (u < q)
-            x = jnp.where(is_med, safe_div(u, q), 0.0)  # double where: x >= 1 off the medium branch gives log(<0)
-            t = M.sample_truncated_exponential(x, prop.sigma_hat, s)
-            if lam_d > 0:
-                # the vertex distance is drawn from a mixture: truncated exponential, or equiangular toward a light
-                # (the path then continues from near the light often enough to make the 1/r light there cheap)
-                te_i = pick(eq_t, U_b[7])
-                valid_i = pick([st[4] for st in eq_setups], U_b[7])
-                t = jnp.where((U_b[6] < lam_d) & valid_i, te_i, t)
-            t = jnp.where(is_med, t, 0.0)
-
-            def vertex_pdf(tt):
-                """Density of the medium vertex at distance tt on this segment (branch probability included)."""
-                p_exp = M.medium_pdf(tt, prop.sigma_hat, s, q)
-                if lam_d == 0:
-                    return p_exp
-                p_eq = sum(jnp.where(st[4], equiangular_pdf(tt, *st), M.medium_pdf(tt, prop.sigma_hat, s, 1.0))
-                           for st in eq_setups) / n_delta
-                return (1.0 - lam_d) * p_exp + lam_d * q * p_eq
-
-            if lam_d > 0:
-                # sigma_s exp(-sigma_t t) / vertex_pdf(t), with exp(sigma_t t) clamped where the weight is ~0 anyway
-                p_v = vertex_pdf(t)
-                w_med = sigma_s * safe_div(jnp.exp(-sigma_t * t), p_v)
-            else:
-                w_med = M.medium_weight(sigma_t, sigma_s, prop.sigma_hat, t, s, jnp.where(is_med, q, 1.0))
-            # double where: on a segment that escapes (no surface) the surface branch is never used, and
-            # exp(-(sigma_t - sigma_hat) s) at s = extent overflows for a proposal with sigma_hat > sigma_t (0 * inf)
-            on_surf = active & hit
-            w_surf = jnp.where(on_surf, M.surface_weight(sigma_t, jnp.where(on_surf, s, 0.0),
-                                                         jnp.where(on_surf, log1mq, 0.0)), 1.0)
-            ff_pdf = vertex_pdf(t)
         else:
-            is_med = jnp.bool_(False)
-            w_surf = jnp.ones(3, jnp.float32)
+            w = power_heuristic(ls.pdf, dir_pdf(ls.wi))
+            L = L + jnp.where(ok & vis & (ls.pdf > 0), c * safe_div(w, ls.pdf), 0.0)
+    return L
 
-        # ---- direct light along the segment: equiangular samples, MIS (balance) with the path's medium vertex
-        if use_equiangular:
-            seg_ok = nee_ok & active
-            for i, light in enumerate(delta_lights):
-                setup, te = eq_setups[i], eq_t[i]
-                valid = setup[4]
-                p_eq = equiangular_pdf(te, *setup)
-                xe = state.o + te * state.d
-                wl, dist, E = delta_incident(light, xe)
-                vis = ~occluded(pk, xe, wl, dist)
-                f = sigma_s * jnp.exp(-sigma_t * te) * hg_pdf(one_minus_cos_between(state.d, wl), g)
-                use = seg_ok & valid & vis & (p_eq > 0)
-                # double where: an unused sample's MIS denominator can be ~1e-30 (dense fog), whose 1/x^2 overflows
-                c = state.beta * f * E * transmit(dist) * safe_div(1.0, jnp.where(use, p_eq + vertex_pdf(te), 1.0))
-                L = L + jnp.where(use, c, 0.0)
-        eq_setups = eq_setups or None
 
-        new = {}
-        p_s = state.o + jnp.where(hit, s_hit, 0.0) * state.d
-        if has_medium:
-            p_m = state.o + t * state.d
-        # ---- the scattering direction: one `direction_from_cos` per lane, whichever technique drew it (the medium's
-        #      HG lobe around d, the diffuse cosine lobe around n, or the light-angle lobe around the light). All draw
-        #      the polar angle from U_b[1] and the azimuth from U_b[2]; only the lane's (1 -+ cos, axis) differ.
-        cands = []  # (1 - cos, 1 + cos, axis), the last one the default
-        if has_medium:
-            omc_h, opc_h = hg_sample(U_b[1], prop.g_hat)
-            cands.append((is_med, omc_h, opc_h, state.d))
-        if DIFFUSE in kinds:
-            omc_cos, opc_cos = cosine_cos(U_b[1])
-            cands.append((None, omc_cos, opc_cos, n))
-        if lam > 0:
-            p_lobe = jnp.where(is_med, p_m, p_s) if has_medium else p_s
-            take_lobe = U_b[4] < lam
-            omc_l, opc_l, axis_l = light_lobe_cos(U_b[1], p_lobe, pick([lt.position for lt in delta_lights], U_b[5]))
-            cands.insert(0, (take_lobe, omc_l, opc_l, axis_l))
-        if cands:
-            _, omc_v, opc_v, axis_v = cands[-1]
-            for mask, omc_c, opc_c, axis_c in reversed(cands[:-1]):
-                omc_v, opc_v = jnp.where(mask, omc_c, omc_v), jnp.where(mask, opc_c, opc_v)
-                axis_v = jnp.where(mask, axis_c, axis_v)
-            wo_v = direction_from_cos(omc_v, opc_v, 2.0 * PI * U_b[2], axis_v)
-        if lam > 0:
-            lobe_p = lobe_pdf(wo_v, p_lobe)
+# ------------------------------------------------------------------------------------------ scattering direction
+def next_direction(tr: Tracer, state: PathState, hit: Hit, seg: Segment, U) -> Direction:
+    """The scattering direction, built once from whichever technique drew it: the sampler's phase function around
+    `d` (medium vertex), a lobe BSDF around the normal (its kind), or the light-angle lobe around the direction to
+    a light (probability `tr.lobe`). All draw the polar angle from `polar` and the azimuth from `azimuth`."""
+    ly, pk = tr.layout, tr.pk
+    cands = []  # (mask, polar, axis); the last one is the default
+    ph = None
+    if tr.lobe > 0:
+        x_lobe = jnp.where(seg.scattered, seg.p, hit.p) if tr.medium is not None else hit.p
+        take_lobe = U[ly.lobe] < tr.lobe
+        target = pick([lt.position for lt in tr.scene.point_lights], U[ly.lobe_light])
+        cands.append((take_lobe, light_lobe_cos(U[ly.polar]), safe_normalize(target - x_lobe)))
+    if tr.medium is not None:
+        ph = tr.sampler.phase.sample_polar(U[ly.polar])
+        cands.append((seg.scattered, ph, state.d))
+    kind = jnp.asarray(pk.bsdf_kind)[hit.idx] if pk.n_shapes else None
+    for k, t in enumerate(pk.bsdf_types):
+        if issubclass(t, AbstractLobeBSDF):
+            bsdf = jax.tree.map(lambda x: x[hit.idx], pk.bsdfs[k])
+            cands.append((kind == k, bsdf.sample_polar(U[ly.polar]), hit.n))
+    if not cands:
+        return Direction(state.d, None, None, None, None)
+    _, polar, axis = cands[-1]
+    omc, opc = polar
+    for mask, (omc_c, opc_c), axis_c in reversed(cands[:-1]):
+        omc, opc, axis = jnp.where(mask, omc_c, omc), jnp.where(mask, opc_c, opc), jnp.where(mask, axis_c, axis)
+    wo = to_direction(Polar(omc, opc), U[ly.azimuth], axis)
+    if tr.lobe == 0:
+        return Direction(wo, ph, None, None, None)
+    return Direction(wo, ph, take_lobe, x_lobe, lobe_pdf(tr, wo, x_lobe))
 
-        # ---- medium vertex
-        if has_medium:
-            beta_m = state.beta * w_med
 
-            wo_m = wo_v
-            if reparam:  # the direction carries d/dg; its weight p_g / p_g is 1
-                pdf_m = hg_pdf(omc_h, prop.g_hat)
-                beta_m_next = beta_m
-            elif lam > 0:
-                omc = jnp.where(take_lobe, one_minus_cos_between(state.d, wo_m), omc_h)
-                pdf_m = (1.0 - lam) * hg_pdf(omc, prop.g_hat) + lam * lobe_p
-                beta_m_next = beta_m * hg_pdf(omc, g) / pdf_m
-            else:
-                pdf_m = hg_pdf(omc_h, prop.g_hat)
-                beta_m_next = beta_m * hg_pdf(omc_h, g) / pdf_m
-            new["med"] = (p_m, wo_m, beta_m_next, pdf_m)
+def lobe_pdf(tr: Tracer, w, x):
+    """Density of the light-angle lobe at `w` from `x`, averaged over the point-like lights."""
+    lights = tr.scene.point_lights
+    return sum(light_lobe_pdf(w, x, lt.position) for lt in lights) / len(lights)
 
-        # ---- surface vertex
-        beta_s = state.beta * w_surf
-        surf = state.alive & ~is_med & hit
-        kind = jnp.asarray(pk.kinds)[idx] if pk.kinds.shape[0] else jnp.int32(-1)
-        cos_d = dot(state.d, n)
-        front = cos_d < 0
-        alive_s = surf  # refined below per kind
-        wo_s, beta_s_next, spec_s, pdf_s = state.d, beta_s, jnp.bool_(True), jnp.float32(0.0)
-        in_medium_s = state.in_medium
 
-        if EMITTER in kinds:
-            is_em = surf & (kind == EMITTER) & front
-            Le = pk.emission[idx]
-            w_em = jnp.float32(0.0)
-            for j, light in enumerate(area_lights):
-                pdf_l = area_pdf_hit(light, state.d, s_hit)
-                w_j = jnp.where(state.specular, 1.0, power_heuristic(state.pdf_dir, pdf_l))
-                w_em = jnp.where(idx == area_emitter_index[j], w_j, w_em)
-            L = L + jnp.where(is_em, beta_s * Le * w_em, 0.0)
-            alive_s = alive_s & (kind != EMITTER)
+def mix_lobe(tr: Tracer, pdf, lobe_p):
+    """The direction density of the technique `pdf` mixed with the light-angle lobe (if on)."""
+    return pdf if tr.lobe == 0 else (1.0 - tr.lobe) * pdf + tr.lobe * lobe_p
 
-        if DIFFUSE in kinds:
-            is_diff = kind == DIFFUSE
-            R = pk.reflectance[idx]
 
-            surf_nee_ok = surf & is_diff & front
-            wo_d = wo_v
-            if lam > 0:
-                cos_o = jnp.maximum(dot(n, wo_d), 0.0)
-                pdf_d = (1.0 - lam) * cos_o * INV_PI + lam * lobe_p
-                beta_d = beta_s * R * safe_div(cos_o * INV_PI, pdf_d)
-            else:
-                pdf_d = (opc_cos - 1.0) * INV_PI  # cos theta / pi
-                beta_d = beta_s * R
-            wo_s = jnp.where(is_diff, wo_d, wo_s)
-            beta_s_next = jnp.where(is_diff, beta_d, beta_s_next)
-            spec_s = jnp.where(is_diff, False, spec_s)
-            pdf_s = jnp.where(is_diff, pdf_d, pdf_s)
-            alive_s = alive_s & ~(is_diff & ~front)
+# --------------------------------------------------------------------------------------------------- vertices
+def medium_vertex(tr: Tracer, state: PathState, seg: Segment, dr: Direction) -> Next:
+    """Continuation from the medium vertex: the phase function's value over the mixture's density."""
+    phase, sphase = tr.medium.phase, tr.sampler.phase
+    beta = state.beta * seg.w_med
+    omc = dr.phase.one_minus_cos
+    if tr.reparam:  # the direction carries the derivative; sampling is exact, so the weight p / p is 1
+        pdf = sphase.pdf_polar(omc)
+        beta_next = beta if phase.sampled_exactly else beta * phase.eval_polar(omc) / pdf
+    else:
+        if tr.lobe > 0:
+            omc = jnp.where(dr.take_lobe, one_minus_cos_between(state.d, dr.wo), omc)
+        pdf = mix_lobe(tr, sphase.pdf_polar(omc), dr.lobe_pdf)
+        beta_next = beta * phase.eval_polar(omc) / pdf
+    t, f = jnp.bool_(True), jnp.bool_(False)
+    return Next(seg.p, dr.wo, beta_next, f, pdf, t, state.in_medium)
 
-        if MIRROR in kinds:
-            is_mir = kind == MIRROR
-            wo_s = jnp.where(is_mir, reflect(state.d, n), wo_s)
-            beta_s_next = jnp.where(is_mir, beta_s * pk.reflectance[idx], beta_s_next)
 
-        if has_glass:
-            is_gl = kind == GLASS
-            int_ior, ext_ior = pk.ior[idx, 0], pk.ior[idx, 1]
-            entering = cos_d < 0
-            n_i = jnp.where(entering, n, -n)
-            eta = jnp.where(entering, int_ior / ext_ior, ext_ior / int_ior)
-            F, cos_t = fresnel_dielectric(jnp.abs(cos_d), eta)
-            refl = U_b[3] < F
-            wo_g = jnp.where(refl, reflect(state.d, n_i), safe_normalize(refract(state.d, n_i, eta, cos_t)))
-            scale = jnp.where(refl, 1.0, 1.0 / (eta * eta))  # radiance compression across the interface
-            wo_s = jnp.where(is_gl, wo_g, wo_s)
-            beta_s_next = jnp.where(is_gl, beta_s * scale, beta_s_next)
-            in_medium_s = jnp.where(is_gl & ~refl, ~entering, in_medium_s)
-
-        # ---- direct light at the vertex: one NEE for the medium or the (diffuse) surface vertex
-        if has_medium or DIFFUSE in kinds:
-            R_v = pk.reflectance[idx] if DIFFUSE in kinds else jnp.zeros(3, jnp.float32)
-            med_v = is_med if has_medium else jnp.bool_(False)
-            ok_v = nee_ok & (med_v | surf_nee_ok) if DIFFUSE in kinds else nee_ok & med_v
-            p_v = jnp.where(med_v, p_m, p_s) if has_medium else p_s
-            shadow_o = jnp.where(med_v, p_v, p_s + EPS_OFFSET * n)
-            beta_v = jnp.where(med_v, beta_m, beta_s) if has_medium else beta_s
-
-            def response(wl):
-                brdf = R_v * INV_PI * jnp.maximum(dot(n, wl), 0.0)
-                if not has_medium:
-                    return brdf
-                return jnp.where(med_v, hg_pdf(one_minus_cos_between(state.d, wl), g), brdf)
-
-            def dir_pdf(wl):
-                cos_pdf = jnp.maximum(dot(n, wl), 0.0) * INV_PI
-                if has_medium:
-                    pdf = jnp.where(med_v, hg_pdf(one_minus_cos_between(state.d, wl), prop.g_hat), cos_pdf)
-                else:
-                    pdf = cos_pdf
-                if lam > 0:
-                    pdf = (1.0 - lam) * pdf + lam * lobe_pdf(wl, p_v)
-                return pdf
-
-            eq_mis = (eq_setups, t, ff_pdf, med_v) if use_equiangular else None
-            L = L + nee(p_v, shadow_o, response, dir_pdf, beta_v, ok_v, U_b, eq_mis=eq_mis)
-
-        # rays leave a surface from the side they go to
-        side = jnp.where(dot(wo_s, n) >= 0, 1.0, -1.0)
-        o_s = p_s + side * EPS_OFFSET * n
-
-        # ---- update the path state
-        if has_medium:
-            p_m, wo_m, beta_m_next, pdf_m = new["med"]
-            o_next = jnp.where(is_med, p_m, o_s)
-            d_next = jnp.where(is_med, wo_m, wo_s)
-            beta_next = jnp.where(is_med, beta_m_next, beta_s_next)
-            spec_next = jnp.where(is_med, False, spec_s)
-            pdf_next = jnp.where(is_med, pdf_m, pdf_s)
-            alive_next = state.alive & (is_med | alive_s)
+def surface_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, dr: Direction, U):
+    """Emission of an area light hit by the path (MIS with the light's sampling), and the BSDF's continuation.
+    Returns `(L, Next)`."""
+    pk, ly, d, n = tr.pk, tr.layout, state.d, hit.n
+    beta = state.beta * seg.w_surf
+    surf = state.alive & ~seg.scattered & hit.found
+    front = dot(d, n) < 0
+    L = jnp.zeros(3, jnp.float32)
+    wo, beta_next, spec, pdf, alive, in_med = d, beta, jnp.bool_(True), jnp.float32(0.0), surf, state.in_medium
+    if pk.n_shapes == 0:
+        return L, Next(hit.p, wo, beta_next, spec, pdf, alive, in_med)
+    kind = jnp.asarray(pk.bsdf_kind)[hit.idx]
+    for light, shape in zip(tr.scene.area_lights, pk.emitter_shape):
+        w = jnp.where(state.specular, 1.0, power_heuristic(state.pdf_dir, light.pdf_li(state.o, d, hit.t)))
+        L = L + jnp.where(surf & (hit.idx == shape), beta * light.emitted(d) * w, 0.0)
+    if tr.scene.area_lights:
+        alive = alive & (kind != EMITTER_KIND)
+    for k, t in enumerate(pk.bsdf_types):
+        is_k = kind == k
+        bsdf = jax.tree.map(lambda x: x[hit.idx], pk.bsdfs[k])
+        if issubclass(t, AbstractLobeBSDF):  # one-sided: a path arriving at the back ends
+            cos_o = dot(n, dr.wo)
+            pdf_k = mix_lobe(tr, bsdf.pdf_cos(cos_o), dr.lobe_pdf)
+            beta_k = beta * safe_div(bsdf.eval_cos(-dot(d, n), cos_o), pdf_k)
+            wo, beta_next = jnp.where(is_k, dr.wo, wo), jnp.where(is_k, beta_k, beta_next)
+            spec, pdf = jnp.where(is_k, False, spec), jnp.where(is_k, pdf_k, pdf)
+            alive = alive & ~(is_k & ~front)
         else:
-            o_next, d_next, beta_next, spec_next, pdf_next = o_s, wo_s, beta_s_next, spec_s, pdf_s
-            alive_next = alive_s
-        in_med_next = jnp.where(is_med, state.in_medium, in_medium_s)
-        new_state = PathState(o_next, d_next, jnp.where(alive_next, beta_next, 0.0), L, alive_next,
-                              spec_next, pdf_next, in_med_next)
-        return new_state, None
+            bs = bsdf.sample(d, n, U[ly.polar:ly.choice + 1])
+            wo, beta_next = jnp.where(is_k, bs.wo, wo), jnp.where(is_k, beta * bs.weight, beta_next)
+            in_med = jnp.where(is_k & bs.transmitted, ~front, in_med)
+    side = jnp.where(dot(wo, n) >= 0, 1.0, -1.0)  # rays leave a surface from the side they go to
+    return L, Next(hit.p + side * EPS_OFFSET * n, wo, beta_next, spec, pdf, alive, in_med)
 
+
+def direct_at_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, ok, U):
+    """NEE from the bounce's vertex: the medium vertex (phase function) or the surface vertex (a lobe BSDF on its
+    front face); delta BSDFs see no light sample."""
+    pk, d, n = tr.pk, state.d, hit.n
+    lobe_kinds = [k for k, t in enumerate(pk.bsdf_types) if issubclass(t, AbstractLobeBSDF)]
+    if tr.medium is None and not lobe_kinds:
+        return jnp.zeros(3, jnp.float32)
+    med_v = seg.scattered
+    kind = jnp.asarray(pk.bsdf_kind)[hit.idx] if pk.n_shapes else None
+    on_lobe = sum((kind == k).astype(jnp.int32) for k in lobe_kinds) > 0 if lobe_kinds else jnp.bool_(False)
+    surf_ok = state.alive & ~med_v & hit.found & (dot(d, n) < 0) & on_lobe
+    ok_v = ok & (med_v | surf_ok)
+    p_v = jnp.where(med_v, seg.p, hit.p)
+    shadow_o = jnp.where(med_v, p_v, hit.p + EPS_OFFSET * n)
+    beta_v = state.beta * jnp.where(med_v, seg.w_med, seg.w_surf)
+    bsdfs = [(kind == k, jax.tree.map(lambda x: x[hit.idx], pk.bsdfs[k])) for k in lobe_kinds]
+
+    def response(wi):
+        r = jnp.zeros(3, jnp.float32)
+        for is_k, b in bsdfs:
+            r = jnp.where(is_k, b.eval(d, wi, n), r)
+        return jnp.where(med_v, tr.medium.phase.eval(d, wi), r) if tr.medium is not None else r
+
+    def dir_pdf(wi):
+        pdf = jnp.float32(0.0)
+        for is_k, b in bsdfs:
+            pdf = jnp.where(is_k, b.pdf(d, wi, n), pdf)
+        if tr.medium is not None:
+            pdf = jnp.where(med_v, tr.sampler.phase.pdf(d, wi), pdf)
+        return mix_lobe(tr, pdf, lobe_pdf(tr, wi, p_v) if tr.lobe > 0 else None)
+
+    return nee(tr, U, p_v, shadow_o, response, dir_pdf, beta_v, ok_v, seg if tr.equiangular else None)
+
+
+# ------------------------------------------------------------------------------------------------- the tracer
+def update(state: PathState, seg: Segment, L, med: Next | None, surf: Next) -> PathState:
+    """The next path state: the medium vertex's continuation where the path scattered, else the surface's."""
+    if med is None:
+        nxt, alive = surf, surf.alive
+    else:
+        nxt = Next(*(jnp.where(seg.scattered, a, b) for a, b in zip(med, surf)))
+        alive = state.alive & (seg.scattered | surf.alive)
+    return PathState(nxt.o, nxt.d, jnp.where(alive, nxt.beta, 0.0), L, alive, nxt.specular, nxt.pdf, nxt.in_medium)
+
+
+def bounce(tr: Tracer, state: PathState, b, U) -> PathState:
+    """One segment of the path and its vertex: the stages in order."""
+    nee_ok = state.alive & (b + 2 <= tr.scene.max_depth)
+    hit = intersect(tr.pk, state.o, state.d)
+    seg = free_flight(tr, state, hit, U) if tr.medium is not None else no_flight(hit)
+    L = state.L
+    if tr.equiangular:
+        L = L + direct_on_segment(tr, state, seg, nee_ok)
+    dr = next_direction(tr, state, hit, seg, U)
+    med = medium_vertex(tr, state, seg, dr) if tr.medium is not None else None
+    L_e, surf = surface_vertex(tr, state, hit, seg, dr, U)
+    L = L + L_e + direct_at_vertex(tr, state, hit, seg, nee_ok, U)
+    return update(state, seg, L, med, surf)
+
+
+def trace_path(tr: Tracer, o, d, U) -> Float[Array, "3"]:
+    """Radiance (RGB) arriving at the camera along the ray `(o, d)`; `U` holds `(n_iterations, n_dims)` uniforms."""
     init = PathState(
         o=o, d=d, beta=jnp.ones(3, jnp.float32), L=jnp.zeros(3, jnp.float32), alive=jnp.bool_(True),
         specular=jnp.bool_(True), pdf_dir=jnp.float32(0.0), in_medium=jnp.bool_(True),
     )
-    n_iter = U.shape[0]
-    if n_iter == 0:
+    if U.shape[0] == 0:
         return init.L
-    final, _ = jax.lax.scan(jax.checkpoint(body), init, (jnp.arange(n_iter), U))
+    body = jax.checkpoint(lambda state, xs: (bounce(tr, state, *xs), None))
+    final, _ = jax.lax.scan(body, init, (jnp.arange(U.shape[0]), U))
     return final.L

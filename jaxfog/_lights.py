@@ -1,62 +1,165 @@
-"""Lights: point, spot (Mitsuba's linear falloff) and one-sided rectangular area lights, plus their pure math.
+"""Lights behind one interface: `sample_li`, `pdf_li`, and for point-like lights the lit interval of a ray.
 
-Point and spot lights are delta lights: invisible to the camera and reached only by next-event estimation.
+- `sample_li(p, u) -> LightSample(wi, dist, value, pdf)`: a direction `wi` from the point `p` toward the light, the
+  shadow-ray length `dist`, the unoccluded, untransmitted `value` (RGB) and the solid-angle `pdf` of `wi`; the
+  contribution of the sample is `f(wi) * value * T(dist) / pdf`. Delta lights (point, spot) have `pdf = 1` and
+  `value = I(-wi) / dist^2` (irradiance on a surface facing the light); area lights have `value = L_e`.
+- `pdf_li(p, wi, dist)`: the density with which `sample_li` picks `wi` (0 for delta lights), for MIS.
+- Point-like lights (`AbstractPointLikeLight`: point and spot) have a `position` (the centre that equiangular
+  sampling and the light-angle lobe aim at) and `lit_interval(o, d)`: where along the ray `o + t d` the light
+  shines at all (the spot's cone), so equiangular samples are spent only there.
+- Area lights are also surfaces: `emitted(d)` is the radiance a camera ray travelling along `d` sees on them.
+
+`n_dims` (static) is the number of uniforms `sample_li` consumes. Point and spot lights are delta lights: invisible
+to the camera and reached only by next-event estimation.
+
+Adding a light: one final class here and one entry in `_scene_io.LIGHTS` (see `notes/ARCHITECTURE.md`).
 """
 
-from __future__ import annotations
+
+import abc
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
+from equinox import AbstractClassVar, AbstractVar
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._math import atan2, cross, dot, safe_normalize, safe_sqrt
+from ._fields import check_nonzero, check_range, concrete, rgb, scalar, vec3
+from ._math import atan2, cross, dot, safe_div, safe_normalize, safe_sqrt
 
 
-def _vec3(x) -> Float[Array, "3"]:
-    return jnp.asarray(x, dtype=jnp.float32).reshape(3)
+class LightSample(NamedTuple):
+    """`wi` (unit, from the shading point toward the light), `dist` (scene units), `value` (RGB: irradiance factor
+    `I / dist^2` for delta lights, radiance `L_e` for area lights; 0 where the sample is invalid) and `pdf` (1/sr;
+    1 for delta lights; 0 where invalid)."""
 
-
-def _rgb(x) -> Float[Array, "3"]:
-    x = jnp.asarray(x, dtype=jnp.float32)
-    return jnp.broadcast_to(x, (3,)) if x.ndim == 0 else x.reshape(3)
-
-
-def _scalar(x) -> Float[Array, ""]:
-    return jnp.asarray(x, dtype=jnp.float32).reshape(())
+    wi: Float[Array, "3"]
+    dist: Float[Array, ""]
+    value: Float[Array, "3"]
+    pdf: Float[Array, ""]
 
 
 class AbstractLight(eqx.Module):
     """A light source. Concrete lights are final."""
 
+    is_delta: AbstractClassVar[bool]
+    n_dims: AbstractClassVar[int]
 
-class PointLight(AbstractLight):
+    @abc.abstractmethod
+    def sample_li(self, p: Float[Array, "3"], u: Float[Array, "n"]) -> LightSample:
+        """Sample the light as seen from the point `p`, with `n_dims` uniforms `u`."""
+
+    @abc.abstractmethod
+    def pdf_li(self, p: Float[Array, "3"], wi: Float[Array, "3"], dist: Float[Array, ""]) -> Float[Array, ""]:
+        """Solid-angle density with which `sample_li(p, .)` picks the direction `wi` reaching the light at `dist`."""
+
+
+class AbstractPointLikeLight(AbstractLight):
+    """A delta light at a point: `position`; its radiant intensity in each direction (`intensity_toward`)."""
+
+    position: AbstractVar[Float[Array, "3"]]
+    is_delta: ClassVar[bool] = True
+    n_dims: ClassVar[int] = 0
+
+    @abc.abstractmethod
+    def intensity_toward(self, w: Float[Array, "3"]) -> Float[Array, "3"]:
+        """RGB radiant intensity (W/sr) the light sends along the unit direction `w` (away from the light)."""
+
+    @abc.abstractmethod
+    def lit_interval(self, o: Float[Array, "3"], d: Float[Array, "3"]) -> tuple[Float[Array, ""], Float[Array, ""]]:
+        """`(t0, t1)`: the light shines on the line `o + t d` only for `t0 <= t <= t1` (possibly empty: t0 > t1;
+        possibly infinite)."""
+
+    def sample_li(self, p, u=None) -> LightSample:
+        v = self.position - p
+        dist2 = dot(v, v)
+        wi = safe_normalize(v)
+        return LightSample(wi, safe_sqrt(dist2), safe_div(self.intensity_toward(-wi), dist2), jnp.float32(1.0))
+
+    def pdf_li(self, p, wi, dist):
+        return jnp.float32(0.0)
+
+
+class PointLight(AbstractPointLikeLight):
     """Isotropic point light: `position` (scene units), radiant `intensity` (W/sr, RGB >= 0)."""
 
-    position: Float[Array, "3"] = eqx.field(converter=_vec3)
-    intensity: Float[Array, "3"] = eqx.field(converter=_rgb)
+    position: Float[Array, "3"] = eqx.field(converter=vec3)
+    intensity: Float[Array, "3"] = eqx.field(converter=rgb)
+
+    def __check_init__(self):
+        check_range("PointLight", "position", self.position)
+        check_range("PointLight", "intensity", self.intensity, 0.0)
+
+    def intensity_toward(self, w):
+        return self.intensity
+
+    def lit_interval(self, o, d):
+        return jnp.float32(-jnp.inf), jnp.float32(jnp.inf)
 
 
-class SpotLight(AbstractLight):
-    """Spot light (Mitsuba `spot`): `position`, unit `direction` of the axis, on-axis `intensity` (W/sr, RGB),
-    `cutoff_angle` and `beam_width` in degrees (0 < beam_width <= cutoff_angle < 90 in the shipped scenes; Mitsuba's
-    defaults are 20 and 15). Intensity at angle theta from the axis is `intensity * spot_falloff(theta)`."""
+SPOT_CUTOFF_DEFAULT = 20.0
+"""Mitsuba's default spot cutoff angle (degrees)."""
 
-    position: Float[Array, "3"] = eqx.field(converter=_vec3)
-    direction: Float[Array, "3"] = eqx.field(converter=lambda v: safe_normalize(_vec3(v)))
-    intensity: Float[Array, "3"] = eqx.field(converter=_rgb)
-    cutoff_angle: Float[Array, ""] = eqx.field(converter=_scalar, default=20.0)
-    beam_width: Float[Array, ""] = eqx.field(converter=_scalar, default=15.0)
+
+def spot_beam_width_default(cutoff_angle: float) -> float:
+    """Mitsuba's default spot beam width: 3/4 of the cutoff angle (degrees)."""
+    return 0.75 * cutoff_angle
+
+
+class SpotLight(AbstractPointLikeLight):
+    """Spot light (Mitsuba `spot`): `position`, unit `direction` of the axis, on-axis `intensity` (W/sr, RGB >= 0),
+    `cutoff_angle` in (0, 90) and `beam_width` in (0, cutoff_angle] degrees (Mitsuba's defaults: 20, and 3/4 of the
+    cutoff). Intensity at angle theta from the axis is `intensity * spot_falloff(theta)`."""
+
+    position: Float[Array, "3"] = eqx.field(converter=vec3)
+    direction: Float[Array, "3"] = eqx.field(converter=lambda v: safe_normalize(vec3(v)))
+    intensity: Float[Array, "3"] = eqx.field(converter=rgb)
+    cutoff_angle: Float[Array, ""] = eqx.field(converter=scalar)
+    beam_width: Float[Array, ""] = eqx.field(converter=scalar)
+
+    def __init__(self, position, direction, intensity, cutoff_angle=SPOT_CUTOFF_DEFAULT, beam_width=None):
+        self.position = position
+        self.direction = direction
+        self.intensity = intensity
+        self.cutoff_angle = cutoff_angle
+        self.beam_width = spot_beam_width_default(cutoff_angle) if beam_width is None else beam_width
+
+    def __check_init__(self):
+        check_range("SpotLight", "position", self.position)
+        check_nonzero("SpotLight", "direction", self.direction)
+        check_range("SpotLight", "intensity", self.intensity, 0.0)
+        check_range("SpotLight", "cutoff_angle", self.cutoff_angle, 0.0, 90.0, lo_open=True, hi_open=True)
+        check_range("SpotLight", "beam_width", self.beam_width, 0.0, None, lo_open=True)
+        cut, beam = concrete(self.cutoff_angle), concrete(self.beam_width)
+        if cut is not None and beam is not None and beam > cut:
+            raise ValueError(f"SpotLight.beam_width = {float(beam)} must not exceed cutoff_angle = {float(cut)}")
+
+    def intensity_toward(self, w):
+        return self.intensity * spot_falloff(dot(w, self.direction), self.cutoff_angle, self.beam_width)
+
+    def lit_interval(self, o, d):
+        return spot_cone_interval(self.position, self.direction, self.cutoff_angle, o, d)
 
 
 class AreaLight(AbstractLight):
     """One-sided emitting rectangle: `center`, perpendicular full edges `edge_u`, `edge_v` (scene units), emitted
-    `radiance` (W/(m^2 sr), RGB) on the front face `normalize(cross(edge_u, edge_v))`. It is also a black surface
-    that blocks light (in Mitsuba: give its shape a `diffuse` BSDF with reflectance 0)."""
+    `radiance` (W/(m^2 sr), RGB >= 0) on the front face `normalize(cross(edge_u, edge_v))`. It is also a black
+    surface that blocks light (in Mitsuba: give its shape a `diffuse` BSDF with reflectance 0). Sampled uniformly
+    by area (2 uniforms)."""
 
-    center: Float[Array, "3"] = eqx.field(converter=_vec3)
-    edge_u: Float[Array, "3"] = eqx.field(converter=_vec3)
-    edge_v: Float[Array, "3"] = eqx.field(converter=_vec3)
-    radiance: Float[Array, "3"] = eqx.field(converter=_rgb)
+    center: Float[Array, "3"] = eqx.field(converter=vec3)
+    edge_u: Float[Array, "3"] = eqx.field(converter=vec3)
+    edge_v: Float[Array, "3"] = eqx.field(converter=vec3)
+    radiance: Float[Array, "3"] = eqx.field(converter=rgb)
+    is_delta: ClassVar[bool] = False
+    n_dims: ClassVar[int] = 2
+
+    def __check_init__(self):
+        check_range("AreaLight", "center", self.center)
+        check_nonzero("AreaLight", "edge_u", self.edge_u)
+        check_nonzero("AreaLight", "edge_v", self.edge_v)
+        check_range("AreaLight", "radiance", self.radiance, 0.0)
 
     @property
     def normal(self) -> Float[Array, "3"]:
@@ -66,7 +169,26 @@ class AreaLight(AbstractLight):
     def area(self) -> Float[Array, ""]:
         return jnp.linalg.norm(cross(self.edge_u, self.edge_v))
 
+    def sample_li(self, p, u) -> LightSample:
+        y = self.center + (u[0] - 0.5) * self.edge_u + (u[1] - 0.5) * self.edge_v
+        v = y - p
+        dist2 = dot(v, v)
+        wi = safe_normalize(v)
+        cos_l = -dot(wi, self.normal)
+        front = cos_l > 0
+        pdf = jnp.where(front, safe_div(dist2, self.area * cos_l), 0.0)
+        return LightSample(wi, safe_sqrt(dist2), jnp.where(front, self.radiance, 0.0), pdf)
 
+    def pdf_li(self, p, wi, dist):
+        cos_l = -dot(wi, self.normal)
+        return jnp.where(cos_l > 0, safe_div(dist * dist, self.area * cos_l), 0.0)
+
+    def emitted(self, d: Float[Array, "3"]) -> Float[Array, "3"]:
+        """Radiance seen by a camera ray travelling along `d` that hits the light: `radiance` on the front face."""
+        return jnp.where(dot(d, self.normal) < 0, self.radiance, 0.0)
+
+
+# ---------------------------------------------------------------------------------------------------- pure math
 def spot_falloff(cos_theta, cutoff_deg, beam_width_deg) -> Float[Array, ""]:
     """Mitsuba's spot falloff at angle theta from the axis (given as `cos theta`): 1 inside `beam_width`,
     `(cutoff - theta) / (cutoff - beam_width)` (radians) between, 0 beyond `cutoff`."""
@@ -83,9 +205,29 @@ def spot_falloff(cos_theta, cutoff_deg, beam_width_deg) -> Float[Array, ""]:
     return jnp.where(inside_beam, 1.0, jnp.where(in_ramp, ramp, 0.0))
 
 
-def delta_light_radiant_intensity(light, w_from_light: Float[Array, "3"]) -> Float[Array, "3"]:
-    """RGB radiant intensity (W/sr) a point or spot light sends along the unit direction `w_from_light`."""
-    if isinstance(light, SpotLight):
-        cos_theta = dot(w_from_light, light.direction)
-        return light.intensity * spot_falloff(cos_theta, light.cutoff_angle, light.beam_width)
-    return light.intensity
+def spot_cone_interval(position, axis, cutoff_deg, o, d):
+    """Interval `[t0, t1]` (possibly empty: t0 > t1; possibly infinite) where the line `o + t d` is inside the cone
+    of half-angle `cutoff_deg` with apex `position` around the unit `axis` (the forward nappe only)."""
+    a = axis
+    c2 = jnp.cos(jnp.deg2rad(cutoff_deg)) ** 2
+    w = o - position
+    da, wa = dot(d, a), dot(w, a)
+    A = da * da - c2
+    B = 2.0 * (da * wa - c2 * dot(d, w))
+    C = wa * wa - c2 * dot(w, w)
+    disc = B * B - 4.0 * A * C
+    sq = safe_sqrt(disc)
+    A_safe = jnp.where(jnp.abs(A) > 1e-12, A, 1e-12)
+    r1 = (-B - sq) / (2.0 * A_safe)
+    r2 = (-B + sq) / (2.0 * A_safe)
+    lo, hi = jnp.minimum(r1, r2), jnp.maximum(r1, r2)
+    inf = jnp.inf
+    # A < 0: inside between the roots (one nappe; check which). A > 0: outside the roots, the nappe d points into.
+    mid = 0.5 * (lo + hi)
+    mid_fwd = (wa + mid * da) >= 0
+    t0_neg = jnp.where((disc >= 0) & mid_fwd, lo, inf)
+    t1_neg = jnp.where((disc >= 0) & mid_fwd, hi, -inf)
+    t0_pos = jnp.where(disc >= 0, jnp.where(da > 0, hi, -inf), jnp.where(wa >= 0, -inf, inf))
+    t1_pos = jnp.where(disc >= 0, jnp.where(da > 0, inf, lo), jnp.where(wa >= 0, inf, -inf))
+    neg = A < 0
+    return jnp.where(neg, t0_neg, t0_pos), jnp.where(neg, t1_neg, t1_pos)

@@ -1,30 +1,43 @@
-"""Homogeneous participating medium: the Module, and the pure free-flight sampling math.
+"""Participating media behind one interface, and the homogeneous medium's free-flight math.
 
-Free-flight sampling in jaxfog is one formula for every gradient estimator (`estimators.md`). A segment of length
-`s` (to the next surface, or to the medium's `extent` for a ray that escapes) is split into two branches chosen with a
+A medium (`AbstractMedium`) gives the tracer everything it needs along a ray segment: free-flight sampling
+(`sample_free_flight`, `free_flight_pdf`), the path weights of its two branches (`collision_weight`,
+`surface_weight`), `transmittance(o, d, t)` for shadow rays, its scattering coefficient at a point
+(`scattering`), and its phase function. Position-dependent media implement the same methods; the tracer does not
+change.
+
+Free-flight sampling is one formula for every gradient estimator (`docs/estimators.md`). A segment of length `s` (to
+the next surface, or to the medium's `extent` for a ray that escapes) is split into two branches chosen with a
 probability `q` that never carries a derivative:
 
-- medium branch (probability `q`): `t = -log(1 - x (1 - exp(-sh s))) / sh` with `x = u / q` uniform in [0, 1), the
-  truncated exponential on [0, s] with rate `sh` (the *sampling* extinction); the path weight is
-  `sigma_s exp(-sigma_t t) / pdf(t)`, `pdf(t) = q sh exp(-sh t) / (1 - exp(-sh s))`;
-- surface branch (probability `1 - q`): weight `exp(-sigma_t s) / (1 - q)`.
+- medium branch (probability `q`): `t` from the free-flight density truncated to [0, s]; the path weight is
+  `sigma_s(t) T(t) / (q p(t))`;
+- surface branch (probability `1 - q`): weight `T(s) / (1 - q)`.
 
-With `q = 1 - exp(-sh s)` this *is* ordinary free-flight sampling `t = -log(1 - u) / sh`. The three estimators differ
-only in `sh`: `stop_gradient(sigma_t)` ("detached"), a caller's fixed reference ("proposal"), or `sigma_t` itself
-("reparam": `t` then moves with `sigma_t`, and the branch, decided by `u < q` with a detached `q`, does not jump).
-`q` is floored at `Q_MIN` so that very thin fog (even `sigma_t = 0`) still samples medium vertices that carry the
-derivative with respect to `sigma_t`.
+Sampling and weighting use two media of the same kind: the *sampler* (whose values decide `t`, `q` and the phase
+function's sample) and the medium itself (whose values make the weights). The estimators differ only in the sampler:
+`stop_gradient(medium)` ("detached"), a caller's fixed reference ("proposal"), or the medium itself ("reparam": `t`
+then moves with `sigma_t`, and the branch, decided by `u < q` with a detached `q`, does not jump).
+
+For the homogeneous medium, with sampling rate `sh`: `t = -log(1 - x (1 - exp(-sh s))) / sh`, `x = u / q`; with
+`q = 1 - exp(-sh s)` this *is* ordinary free-flight sampling `t = -log(1 - u) / sh`. `q` is floored at `Q_MIN` so
+that very thin fog (even `sigma_t = 0`) still samples medium vertices that carry the derivative w.r.t. `sigma_t`.
 """
 
-from __future__ import annotations
+
+import abc
+from typing import NamedTuple
 
 import equinox as eqx
+from equinox import AbstractClassVar, AbstractVar
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
+from ._fields import check_range, rgb
 from ._math import finite_or, one_minus_exp_neg
-from ._phase import HenyeyGreenstein
+from ._phase import AbstractPhaseFunction, HenyeyGreenstein
+from ._sampling import sample_truncated_exponential
 
 Q_MIN = 0.05
 """Smallest probability of choosing the medium branch on a segment (no derivative; a variance/cost trade-off)."""
@@ -36,26 +49,81 @@ SIGMA_HAT_MIN = 1e-6
 """Smallest sampling extinction (1/scene unit); below it the truncated exponential is uniform on [0, s] anyway."""
 
 
-def _rgb(x) -> Float[Array, "3"]:
-    x = jnp.asarray(x, dtype=jnp.float32)
-    return jnp.broadcast_to(x, (3,)) if x.ndim == 0 else x
+class FlightSample(NamedTuple):
+    """A free-flight decision on one segment: `t` (scene units; meaningful where `scattered`), `scattered` (the
+    medium branch was chosen), `q` (its probability, 0 outside the medium) and `log_one_minus_q` (exact where no
+    clamp is active, so surface weights never underflow to 0/0)."""
+
+    t: Float[Array, ""]
+    scattered: Bool[Array, ""]
+    q: Float[Array, ""]
+    log_one_minus_q: Float[Array, ""]
 
 
-class HomogeneousMedium(eqx.Module):
-    """One homogeneous medium filling all space outside the objects (the camera is inside it).
+class AbstractMedium(eqx.Module):
+    """A participating medium filling all space outside the objects (the camera is inside it).
+
+    Methods are called either on the medium (weights, transmittance, scattering) or on the *sampler*, a medium of
+    the same kind whose values are the sampling parameters (`sample_free_flight`, `free_flight_pdf`, its `phase`'s
+    sampling). Segments start at `o` with unit direction `d` and have length `s` (finite: the tracer clips escaping
+    rays at `extent`).
+    """
+
+    phase: AbstractVar[AbstractPhaseFunction]
+    extent: AbstractVar[float]
+
+    @abc.abstractmethod
+    def sample_free_flight(self, o, d, s, ends_on_surface, active, u) -> FlightSample:
+        """On the sampler: choose the branch with `u` in [0, 1) and, for the medium branch, a distance in [0, s).
+        `ends_on_surface`: the segment ends on a surface (its branch gets probability >= 1 - Q_MAX_SURFACE);
+        `active`: the path is in the medium (outside glass objects; otherwise q = 0)."""
+
+    @abc.abstractmethod
+    def free_flight_pdf(self, o, d, s, q, t) -> Float[Array, ""]:
+        """On the sampler: density (1/scene unit) of a medium vertex at `t` in [0, s], the branch probability `q`
+        included."""
+
+    @abc.abstractmethod
+    def collision_weight(self, sampler, o, d, s, q, t) -> Float[Array, "3"]:
+        """Path weight `sigma_s(t) T(t) / sampler.free_flight_pdf(..., q, t)` of a medium vertex, RGB, without
+        underflow."""
+
+    @abc.abstractmethod
+    def surface_weight(self, o, d, s, log_one_minus_q) -> Float[Array, "3"]:
+        """Path weight `T(s) / (1 - q)` of reaching the surface at the end of the segment, RGB."""
+
+    @abc.abstractmethod
+    def transmittance(self, o, d, t) -> Float[Array, "3"]:
+        """Transmittance over `[0, t]` along the ray, RGB in [0, 1]; `t` may be inf (finite gradient)."""
+
+    @abc.abstractmethod
+    def scattering(self, p) -> Float[Array, "3"]:
+        """Scattering coefficient `sigma_s` at the point `p`, RGB, 1/scene unit."""
+
+
+class HomogeneousMedium(AbstractMedium):
+    """A homogeneous medium.
 
     **Fields:**
     - `sigma_t`: extinction coefficient, RGB, in 1/scene unit, >= 0 (0 means no fog). A scalar sets all channels.
     - `albedo`: single-scattering albedo `sigma_s / sigma_t`, RGB, in [0, 1].
-    - `phase`: the phase function (Henyey–Greenstein, `g` in (-1, 1), g > 0 forward).
+    - `phase`: the phase function (any `AbstractPhaseFunction`; `HenyeyGreenstein(g)` in the shipped scenes).
     - `extent`: static; a ray that travels this far (scene units) without meeting a surface leaves the fog.
       Default 1000: light scattered beyond it is below `sigma_s * I / extent` and negligible for the shipped scenes.
     """
 
-    sigma_t: Float[Array, "3"] = eqx.field(converter=_rgb)
-    albedo: Float[Array, "3"] = eqx.field(converter=_rgb)
-    phase: HenyeyGreenstein
+    sigma_t: Float[Array, "3"] = eqx.field(converter=rgb)
+    albedo: Float[Array, "3"] = eqx.field(converter=rgb)
+    phase: AbstractPhaseFunction
     extent: float = eqx.field(static=True, default=1000.0)
+
+    def __check_init__(self):
+        check_range("HomogeneousMedium", "sigma_t", self.sigma_t, 0.0)
+        check_range("HomogeneousMedium", "albedo", self.albedo, 0.0, 1.0)
+        if not isinstance(self.phase, AbstractPhaseFunction):
+            raise TypeError(f"HomogeneousMedium.phase must be a phase function, got {type(self.phase).__name__}")
+        if not (isinstance(self.extent, (int, float)) and 0 < self.extent < float("inf")):
+            raise ValueError(f"HomogeneousMedium.extent = {self.extent!r} must be a finite number > 0")
 
     @property
     def sigma_s(self) -> Float[Array, "3"]:
@@ -64,7 +132,33 @@ class HomogeneousMedium(eqx.Module):
 
     @property
     def g(self) -> Float[Array, ""]:
+        """The Henyey–Greenstein `g` of the phase function (AttributeError for other phase functions)."""
+        if not isinstance(self.phase, HenyeyGreenstein):
+            raise AttributeError(f"the medium's phase function is {type(self.phase).__name__}, which has no g")
         return self.phase.g
+
+    def sample_free_flight(self, o, d, s, ends_on_surface, active, u) -> FlightSample:
+        sh = sampling_extinction(self.sigma_t)
+        q, log1mq = branch_probability(sh, s, jnp.where(ends_on_surface, Q_MAX_SURFACE, 1.0))
+        q = jnp.where(active, q, 0.0)
+        scattered = active & (u < q)
+        x = jnp.where(scattered, u / jnp.where(scattered, q, 1.0), 0.0)  # double where: x >= 1 gives log(< 0)
+        return FlightSample(sample_truncated_exponential(x, sh, s), scattered, q, log1mq)
+
+    def free_flight_pdf(self, o, d, s, q, t):
+        return medium_pdf(t, sampling_extinction(self.sigma_t), s, q)
+
+    def collision_weight(self, sampler, o, d, s, q, t):
+        return medium_weight(self.sigma_t, self.sigma_s, sampling_extinction(sampler.sigma_t), t, s, q)
+
+    def surface_weight(self, o, d, s, log_one_minus_q):
+        return surface_weight(self.sigma_t, s, log_one_minus_q)
+
+    def transmittance(self, o, d, t):
+        return transmittance(self.sigma_t, t)
+
+    def scattering(self, p):
+        return self.sigma_s
 
 
 def sampling_extinction(sigma_t: Float[Array, "3"]) -> Float[Array, ""]:
@@ -92,17 +186,6 @@ def branch_probability(
     q = jnp.where(floored, Q_MIN, jnp.where(capped, q_max, m))
     log_one_minus_q = jnp.where(floored, jnp.log1p(-Q_MIN), jnp.where(capped, jnp.log1p(-q_max), -sh * s))
     return q, log_one_minus_q
-
-
-def sample_truncated_exponential(
-    x: Float[Array, ""], sh: Float[Array, ""], s: Float[Array, ""]
-) -> Float[Array, ""]:
-    """`t` in [0, s) from the exponential with rate `sh` > 0 truncated to [0, s]; `x` uniform in [0, 1).
-
-    `t = -log1p(-x (1 - exp(-sh s))) / sh`, differentiable in `sh` (the reparameterized free flight).
-    """
-    m = one_minus_exp_neg(sh * s)
-    return -jnp.log1p(-x * m) / sh
 
 
 def medium_pdf(t, sh, s, q) -> Float[Array, ""]:

@@ -1,72 +1,118 @@
-"""Henyey–Greenstein phase function: pure sampling and evaluation, and the Module the integrator uses.
+"""Phase functions behind one interface: `sample`, `eval`, `pdf`.
 
-Convention (`conventions.md`): theta is the angle between the direction light travelled before scattering and the
-direction it travels after. `g > 0` scatters forward, `E[cos theta] = g`, valid range `-1 < g < 1`.
+Convention (`docs/conventions.md`): theta is the angle between the direction light travelled before scattering and
+the direction it travels after. `E[cos theta] > 0` scatters forward (HG with g > 0).
 
 For a path traced from the camera with current ray direction `d`, the light travels along `-d`; the scattering
 angle to a new camera-path direction `w` (light arriving along `-w`) therefore has `cos theta = dot(d, w)`.
+
+The media of jaxfog are isotropic, so a phase function depends on the scattering angle alone: a concrete phase
+function implements the three *polar* methods (`sample_polar(u)`, `eval_polar(1 - cos)`, `pdf_polar(1 - cos)`),
+and the direction-level `sample` / `eval` / `pdf` follow from them. The tracer uses the polar forms so that every
+sampling technique of a bounce shares one direction construction (`_sampling.to_direction`).
+
+Adding a phase function: one final class here (its parameters as array fields, checked in `__check_init__`), one
+entry in `_scene_io.PHASES`, and its Mitsuba name in `_mitsuba` (see `notes/ARCHITECTURE.md`).
 """
 
-from __future__ import annotations
+
+import abc
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
-import jax.numpy as jnp
+from equinox import AbstractClassVar, AbstractVar
 from jaxtyping import Array, Float
 
-from ._math import INV_4PI, PI, direction_from_cos, one_minus_cos_between
+from ._fields import check_range, scalar
+from ._math import one_minus_cos_between
+from ._sampling import Polar, hg_pdf, hg_sample, rayleigh_pdf, rayleigh_sample, to_direction
+
+__all__ = ["AbstractPhaseFunction", "HenyeyGreenstein", "Rayleigh", "PhaseSample", "hg_pdf", "hg_sample"]
 
 
-def hg_sample(u: Float[Array, ""], g: Float[Array, ""]) -> tuple[Float[Array, ""], Float[Array, ""]]:
-    """Inverse-CDF sample of the HG scattering angle, cancellation-free, with no division by g and no branch.
-
-    **Arguments:** `u` uniform in [0, 1); `g` in (-1, 1).
-
-    **Returns:** `(1 - cos theta, 1 + cos theta)`, each in [0, 2], accurate in float32 for every g in (-1, 1)
-    (including g = 0 and |g| -> 1). With `a = 1 - g`, `b = 1 + g`, `v = 1 - u`, `d = a v + b u`:
-    `1 - cos = 2 a^2 v (v + b u) / d^2`, `1 + cos = 2 b^2 u (a v + u) / d^2`.
-    Differentiable in `g` (the reparameterized HG sample).
-    """
-    a = 1.0 - g
-    b = 1.0 + g
-    v = 1.0 - u
-    d = a * v + b * u
-    inv_d2 = 1.0 / (d * d)
-    one_minus_cos = 2.0 * a * a * v * (v + b * u) * inv_d2
-    one_plus_cos = 2.0 * b * b * u * (a * v + u) * inv_d2
-    return jnp.clip(one_minus_cos, 0.0, 2.0), jnp.clip(one_plus_cos, 0.0, 2.0)
-
-
-def hg_pdf(one_minus_cos: Float[Array, ""], g: Float[Array, ""]) -> Float[Array, ""]:
-    """HG phase function value (= its pdf over solid angle, 1/sr), from `1 - cos theta` in [0, 2] and g in (-1, 1).
-
-    `p = (1 - g)(1 + g) / (4 pi ((1 - g)^2 + 2 g (1 - cos))^(3/2))`: no cancellation near the forward peak. For
-    g < 0 the same denominator is written `(1 + g)^2 - 2 g (1 + cos)` (a sum of two terms >= 0): the first form
-    cancels at the backward peak and rounds to <= 0 for g -> -1 (NaN from the square root, e.g. g = -0.999).
-    """
-    one_plus_cos = jnp.maximum(2.0 - one_minus_cos, 0.0)
-    denom = jnp.where(g >= 0, (1.0 - g) ** 2 + 2.0 * g * one_minus_cos, (1.0 + g) ** 2 - 2.0 * g * one_plus_cos)
-    return (1.0 - g) * (1.0 + g) * INV_4PI / (denom * jnp.sqrt(denom))
-
-
-class PhaseSample(eqx.Module):
-    """A sampled direction: `wo` (unit 3-vector), `pdf` (1/sr) and `one_minus_cos` of the scattering angle."""
+class PhaseSample(NamedTuple):
+    """A sampled direction: `wo` (unit 3-vector), `pdf` (1/sr), `weight = eval / pdf` (1 where sampling is exact)
+    and `one_minus_cos` of the scattering angle."""
 
     wo: Float[Array, "3"]
     pdf: Float[Array, ""]
+    weight: Float[Array, ""]
     one_minus_cos: Float[Array, ""]
 
 
-class HenyeyGreenstein(eqx.Module):
-    """Henyey–Greenstein phase function with asymmetry `g` in (-1, 1) (traced; g > 0 forward)."""
+class AbstractPhaseFunction(eqx.Module):
+    """A phase function of an isotropic medium: a density over directions (1/sr) that integrates to 1.
 
-    g: Float[Array, ""] = eqx.field(converter=lambda x: jnp.asarray(x, dtype=jnp.float32))  # one dtype, never weak
+    Concrete subclasses implement the polar methods and say whether `sample_polar` draws exactly from the phase
+    function (`sampled_exactly`: `eval_polar == pdf_polar`, so a sample's weight is 1); `sample`, `eval` and `pdf`
+    are shared and never overridden.
+    """
+
+    sampled_exactly: AbstractClassVar[bool]
+
+    @abc.abstractmethod
+    def sample_polar(self, u: Float[Array, ""]) -> Polar:
+        """The scattering angle's `(1 - cos, 1 + cos)` for u uniform in [0, 1), drawn with density `pdf_polar`."""
+
+    @abc.abstractmethod
+    def eval_polar(self, one_minus_cos: Float[Array, ""]) -> Float[Array, ""]:
+        """Phase function value (1/sr) at the scattering angle given by `1 - cos theta` in [0, 2]."""
+
+    @abc.abstractmethod
+    def pdf_polar(self, one_minus_cos: Float[Array, ""]) -> Float[Array, ""]:
+        """Solid-angle density (1/sr) with which `sample_polar` (and a uniform azimuth) produces that angle."""
 
     def sample(self, d: Float[Array, "3"], u: Float[Array, "2"]) -> PhaseSample:
-        """Sample a new camera-path direction around the current direction `d`; pdf is the HG value."""
-        omc, opc = hg_sample(u[0], self.g)
-        wo = direction_from_cos(omc, opc, 2.0 * PI * u[1], d)
-        return PhaseSample(wo=wo, pdf=hg_pdf(omc, self.g), one_minus_cos=omc)
+        """A new camera-path direction for a path travelling along unit `d`; `u[0]` polar, `u[1]` azimuth."""
+        polar = self.sample_polar(u[0])
+        omc = polar.one_minus_cos
+        pdf = self.pdf_polar(omc)
+        return PhaseSample(to_direction(polar, u[1], d), pdf, self.eval_polar(omc) / pdf, omc)
 
     def eval(self, d: Float[Array, "3"], wo: Float[Array, "3"]) -> Float[Array, ""]:
-        """Phase value (1/sr) for a camera path going along `d` and continuing along `wo` (both unit vectors)."""
-        return hg_pdf(one_minus_cos_between(d, wo), self.g)
+        """Phase value (1/sr) for a camera path going along `d` and continuing along `wo` (unit vectors)."""
+        return self.eval_polar(one_minus_cos_between(d, wo))
+
+    def pdf(self, d: Float[Array, "3"], wo: Float[Array, "3"]) -> Float[Array, ""]:
+        """Density (1/sr) with which `sample(d, .)` produces `wo`."""
+        return self.pdf_polar(one_minus_cos_between(d, wo))
+
+
+class HenyeyGreenstein(AbstractPhaseFunction):
+    """Henyey–Greenstein phase function with asymmetry `g` = E[cos theta] in (-1, 1) (traced; g > 0 forward).
+
+    Sampled exactly (`eval == pdf`) with the cancellation-free inverse cdf of `_sampling.hg_sample`; differentiable
+    in `g` in value and in the sampled direction (the reparameterized HG sample).
+    """
+
+    g: Float[Array, ""] = eqx.field(converter=scalar)
+    sampled_exactly: ClassVar[bool] = True
+
+    def __check_init__(self):
+        check_range("HenyeyGreenstein", "g", self.g, -1.0, 1.0, lo_open=True, hi_open=True)
+
+    def sample_polar(self, u):
+        return Polar(*hg_sample(u, self.g))
+
+    def eval_polar(self, one_minus_cos):
+        return hg_pdf(one_minus_cos, self.g)
+
+    def pdf_polar(self, one_minus_cos):
+        return hg_pdf(one_minus_cos, self.g)
+
+
+class Rayleigh(AbstractPhaseFunction):
+    """Rayleigh phase function `3 (1 + cos^2 theta) / (16 pi)` (scattering by particles much smaller than the
+    wavelength: clear-air haze; Mitsuba `rayleigh`). No parameters; `E[cos] = 0`, `E[cos^2] = 2/5`; sampled exactly
+    by solving its cubic (`_sampling.rayleigh_sample`)."""
+
+    sampled_exactly: ClassVar[bool] = True
+
+    def sample_polar(self, u):
+        return rayleigh_sample(u)
+
+    def eval_polar(self, one_minus_cos):
+        return rayleigh_pdf(one_minus_cos)
+
+    def pdf_polar(self, one_minus_cos):
+        return rayleigh_pdf(one_minus_cos)

@@ -18,7 +18,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ._integrator import ESTIMATORS, Options, make_proposal, n_dims, n_iterations, trace_path
+from ._integrator import SamplingOptions, make_tracer, n_dims, n_iterations, trace_path
 from ._random import uniforms
 from ._scene import Scene, pack
 
@@ -54,7 +54,8 @@ def items_per_call(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PATH
     return -(-n // n_devices) * n_devices
 
 
-def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, valid: Array, options: Options,
+def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, valid: Array,
+                 options: SamplingOptions,
                  proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS):
     """Sum of every pixel's radiance over the given work items, `(n_chunks * chunk, 3)` (rows past `H*W` belong to the
     last chunk's padding). Item `i` traces chunk `chunk_ids[i]` of sample layer `layer_ids[i]`, one after the other;
@@ -62,14 +63,13 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
     can reach a gradient) with its own random numbers, and is dropped by the caller."""
     cam = scene.camera
     H, W = cam.height, cam.width
-    pk = pack(scene)
-    prop = make_proposal(scene, options, proposal)
+    tracer = make_tracer(scene, pack(scene), options, proposal)
     n_iter, K = n_iterations(scene), n_dims(scene)
     chunk, n_ch = n_chunks(scene, chunk_paths)
 
     def one_path(pixel, U_p):
         o, d = cam.generate_ray(pixel)
-        return trace_path(scene, pk, prop, options, o, d, U_p)
+        return trace_path(tracer, o, d, U_p)
 
     def step(acc, xs):
         layer_id, chunk_id, ok = xs
@@ -87,9 +87,22 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
     return acc
 
 
+def sampling_options(sampling: SamplingOptions | None = None, **fields) -> SamplingOptions:
+    """`sampling` (default `SamplingOptions()`) with the given non-None fields replaced (validated)."""
+    if sampling is None:
+        sampling = SamplingOptions()
+    if not isinstance(sampling, SamplingOptions):
+        raise TypeError(f"sampling must be a jaxfog.SamplingOptions, got {type(sampling).__name__}")
+    changed = {k: v for k, v in fields.items() if v is not None}
+    if not changed:
+        return sampling
+    values = {f: getattr(sampling, f) for f in ("estimator", "equiangular", "light_lobe", "distance_mix")}
+    return SamplingOptions(**{**values, **changed})
+
+
 @eqx.filter_jit
 def _render_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, n_valid: Array,
-                  options: Options, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1):
+                  options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1):
     """`_trace_items` over the work items (the first `n_valid` are real), split evenly across the first `n_devices`
     local devices (static; the number of items must be a multiple of it): one compiled program, each device scans
     its share of the items, the shares are summed; returns `(H*W, 3)`. The items and their random numbers do not
@@ -116,11 +129,12 @@ def render(
     key: PRNGKeyArray,
     spp: int,
     *,
-    estimator: str = "detached",
+    sampling: SamplingOptions | None = None,
     proposal=None,
-    equiangular: bool = True,
-    light_lobe: float = Options().light_lobe,
-    distance_mix: float = Options().distance_mix,
+    estimator: str | None = None,
+    equiangular: bool | None = None,
+    light_lobe: float | None = None,
+    distance_mix: float | None = None,
     batch_paths: int = DEFAULT_BATCH_PATHS,
     chunk_paths: int = DEFAULT_CHUNK_PATHS,
     devices: int | None = None,
@@ -130,35 +144,26 @@ def render(
 
     **Arguments:**
     - `key`: a JAX PRNG key; the same scene, key and spp give the same image.
-    - `estimator`: how derivatives are estimated (values are the same in expectation): `"detached"` (default;
-      detached sampling, attached weights), `"reparam"` (reparameterized free flight and HG), `"proposal"` (sampling
-      from the fixed reference `proposal`, a `HomogeneousMedium`; a smooth deterministic function of the parameters
-      for a fixed key). See `estimators.md`.
-    - `equiangular`: equiangular sampling toward point and spot lights, MIS-combined with free flight.
-    - `light_lobe`: probability (in [0, 1); default 0.3) of sampling scattering directions from the light-angle lobe
-      (density `2 (pi - alpha) / pi^2` in the angle alpha to a point/spot light) instead of from the phase function /
-      cosine lobe; `distance_mix` (default 0.15): probability of placing a path's medium
-      vertex by equiangular sampling instead of free flight (needs `equiangular`). Neither is used by "reparam".
+    - `sampling`: how paths are sampled, a `SamplingOptions` (estimator, equiangular, light_lobe, distance_mix;
+      default `SamplingOptions()`). The keywords `estimator`, `equiangular`, `light_lobe` and `distance_mix` are
+      shorthands that replace those fields (e.g. `render(scene, key, 64, estimator="reparam")`).
+    - `proposal`: for `estimator="proposal"`, the fixed reference medium (of the scene medium's kind) that samples
+      distances and directions: the image is then a smooth deterministic function of the parameters for a fixed key.
+
+    Execution (speed and memory only; the image changes at float32 rounding level, never in distribution):
     - `batch_paths`: paths per compiled call (memory bound); `progress(done_spp, spp)` is called after each batch.
-    - `chunk_paths`: paths traced together in one vectorized pass (speed only: the image changes at float32
-      rounding level, never in distribution; default 1024, see `DEFAULT_CHUNK_PATHS`).
+    - `chunk_paths`: paths traced together in one vectorized pass (default 1024, see `DEFAULT_CHUNK_PATHS`).
     - `devices`: how many local devices share each batch's work (default: all of them; a CPU is one device
-      unless `jaxfog.use_cpu_cores()` ran before JAX started, which the command-line entry points do). The image
-      changes at float32 rounding level only.
+      unless `jaxfog.use_cpu_cores()` ran before JAX started, which the command-line entry points do).
 
     Differentiable with `jax.grad`, `jax.jvp`, `jax.jacfwd` with respect to the scene's array fields.
     """
-    if estimator not in ESTIMATORS:
-        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
-    if not isinstance(spp, int) or spp < 1:
+    options = sampling_options(sampling, estimator=estimator, equiangular=equiangular, light_lobe=light_lobe,
+                               distance_mix=distance_mix)
+    if not isinstance(spp, int) or isinstance(spp, bool) or spp < 1:
         raise ValueError(f"spp must be a positive integer, got {spp!r}")
     if not isinstance(chunk_paths, int) or chunk_paths < 1:
         raise ValueError(f"chunk_paths must be a positive integer, got {chunk_paths!r}")
-    for name, v in (("light_lobe", light_lobe), ("distance_mix", distance_mix)):
-        if not 0.0 <= v < 1.0:
-            raise ValueError(f"{name} must be in [0, 1), got {v!r}")
-    options = Options(estimator=estimator, equiangular=bool(equiangular), light_lobe=float(light_lobe),
-                      distance_mix=float(distance_mix))
     n_dev = jax.local_device_count() if devices is None else devices
     if not isinstance(n_dev, int) or not 1 <= n_dev <= jax.local_device_count():
         raise ValueError(f"devices must be an integer in [1, {jax.local_device_count()}], got {devices!r}")

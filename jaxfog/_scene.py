@@ -7,27 +7,31 @@ traced arrays, so changing them never recompiles.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._bsdf import Diffuse, Glass, Mirror
+from ._bsdf import AbstractBSDF
 from ._camera import Camera
-from ._lights import AreaLight, PointLight, SpotLight
-from ._medium import HomogeneousMedium
+from ._lights import AbstractLight, AbstractPointLikeLight, AreaLight
+from ._medium import AbstractMedium
 from ._shapes import Rectangle, Sphere
 
-DIFFUSE, MIRROR, GLASS, EMITTER = 0, 1, 2, 3
+EMITTER_KIND = -1
+"""`Packed.bsdf_kind` of the black rectangles that stand for area lights."""
 
 
 class Scene(eqx.Module):
     """Everything the renderer needs.
 
-    **Fields:** `camera`; `shapes`: tuple of `Sphere`/`Rectangle`; `lights`: tuple of `PointLight`/`SpotLight`/
-    `AreaLight`; `medium`: a `HomogeneousMedium` or None (no fog: no medium code is compiled); `max_depth`: static int
+    **Fields:** `camera`; `shapes`: tuple of `Sphere`/`Rectangle`; `lights`: tuple of lights (`PointLight`,
+    `SpotLight`, `AreaLight`); `medium`: a medium (`HomogeneousMedium`) or None (no fog: no medium code is
+    compiled); `max_depth`: static int
     >= 1, the longest path in segments from the camera to a light, the light-sampling segment included
     (conventions.md; 8 is the default, 2 is single scattering).
     """
@@ -35,7 +39,7 @@ class Scene(eqx.Module):
     camera: Camera
     shapes: tuple = ()
     lights: tuple = ()
-    medium: HomogeneousMedium | None = None
+    medium: AbstractMedium | None = None
     max_depth: int = eqx.field(static=True, default=8)
 
     def __check_init__(self):
@@ -44,36 +48,53 @@ class Scene(eqx.Module):
         for s in self.shapes:
             if not isinstance(s, (Sphere, Rectangle)):
                 raise TypeError(f"shapes must be Sphere or Rectangle, got {type(s).__name__}")
+            if not isinstance(s.bsdf, AbstractBSDF):
+                raise TypeError(f"a shape's bsdf must be a BSDF (Diffuse, Mirror, Glass), got {type(s.bsdf).__name__}")
         for light in self.lights:
-            if not isinstance(light, (PointLight, SpotLight, AreaLight)):
-                raise TypeError(f"lights must be PointLight, SpotLight or AreaLight, got {type(light).__name__}")
+            if not isinstance(light, AbstractLight):
+                raise TypeError(f"lights must be lights (PointLight, SpotLight, AreaLight), got {type(light).__name__}")
+        if self.medium is not None and not isinstance(self.medium, AbstractMedium):
+            raise TypeError(f"medium must be a medium (HomogeneousMedium) or None, got {type(self.medium).__name__}")
 
     @property
     def delta_lights(self) -> tuple:
-        return tuple(lt for lt in self.lights if isinstance(lt, (PointLight, SpotLight)))
+        """Lights reached by next-event estimation only (point, spot)."""
+        return tuple(lt for lt in self.lights if lt.is_delta)
+
+    @property
+    def point_lights(self) -> tuple:
+        """Delta lights at a point (point, spot): the targets of equiangular sampling and the light-angle lobe."""
+        return tuple(lt for lt in self.lights if isinstance(lt, AbstractPointLikeLight))
 
     @property
     def area_lights(self) -> tuple:
         return tuple(lt for lt in self.lights if isinstance(lt, AreaLight))
 
     def replace_medium(self, **values) -> "Scene":
-        """A copy with medium values replaced: `sigma_t`, `albedo` (RGB or scalar) and/or `g`."""
+        """A copy with medium values replaced, e.g. `sigma_t`, `albedo` (RGB or scalar) and/or the phase function's
+        parameters (`g`). The new medium is built (and validated) by its constructor: `g=1.0` raises ValueError."""
         med = self.medium
         if med is None:
             raise ValueError("this scene has no medium")
-        new = HomogeneousMedium(
-            sigma_t=values.get("sigma_t", med.sigma_t),
-            albedo=values.get("albedo", med.albedo),
-            phase=type(med.phase)(g=values.get("g", med.phase.g)),
-            extent=med.extent,
-        )
-        return eqx.tree_at(lambda s: s.medium, self, new)
+        phase_fields = {f.name for f in dataclasses.fields(med.phase)}
+        medium_fields = {f.name for f in dataclasses.fields(med)} - {"phase"}
+        unknown = set(values) - phase_fields - medium_fields
+        if unknown:
+            raise ValueError(f"replace_medium: unknown parameter(s) {sorted(unknown)}; this medium has "
+                             f"{sorted(medium_fields | phase_fields)}")
+        phase = type(med.phase)(**{k: values.get(k, getattr(med.phase, k)) for k in phase_fields})
+        kw = {k: values.get(k, getattr(med, k)) for k in medium_fields}
+        return eqx.tree_at(lambda s: s.medium, self, type(med)(phase=phase, **kw))
 
 
 class Packed(NamedTuple):
-    """Stacked per-kind geometry and per-shape material arrays (global shape index: spheres, rectangles, emitters).
+    """The scene's geometry as stacked arrays, and its BSDFs grouped by type (global shape index: spheres,
+    rectangles, then one black rectangle per area light).
 
-    `kinds` is a static numpy array (what BSDF code exists is decided in Python); the rest are traced arrays.
+    `bsdf_types` (the BSDF classes present, in order of appearance), `bsdf_kind` (per shape: the index of its BSDF
+    class in `bsdf_types`, or `EMITTER_KIND`) and `emitter_shape` (per area light, in `scene.area_lights` order: its
+    shape index) are static; `bsdfs[k]` is one Module of type `bsdf_types[k]` whose array fields have a leading
+    shape axis (shapes of other types hold a copy of the first one's values, never used).
     """
 
     sph_center: Float[Array, "Ns 3"]
@@ -82,19 +103,18 @@ class Packed(NamedTuple):
     rect_u: Float[Array, "Nr 3"]
     rect_v: Float[Array, "Nr 3"]
     rect_normal: Float[Array, "Nr 3"]
-    kinds: np.ndarray
-    reflectance: Float[Array, "N 3"]
-    ior: Float[Array, "N 2"]
-    emission: Float[Array, "N 3"]
+    bsdf_types: tuple
+    bsdf_kind: np.ndarray
+    bsdfs: tuple
+    emitter_shape: tuple
 
     @property
     def n_spheres(self) -> int:
         return self.sph_radius.shape[0]
 
     @property
-    def has(self):
-        """Set of BSDF kinds present (static)."""
-        return set(int(k) for k in self.kinds)
+    def n_shapes(self) -> int:
+        return len(self.bsdf_kind)
 
 
 def pack(scene: Scene) -> Packed:
@@ -103,38 +123,30 @@ def pack(scene: Scene) -> Packed:
     rects = [s for s in scene.shapes if isinstance(s, Rectangle)]
     emitters = list(scene.area_lights)
     ordered = spheres + rects
-    kinds, refl, ior, emis = [], [], [], []
-    zero3 = jnp.zeros(3, jnp.float32)
+    types = []
     for s in ordered:
-        b = s.bsdf
-        if isinstance(b, Diffuse):
-            kinds.append(DIFFUSE); refl.append(b.reflectance); ior.append(jnp.ones(2, jnp.float32))
-        elif isinstance(b, Mirror):
-            kinds.append(MIRROR); refl.append(b.reflectance); ior.append(jnp.ones(2, jnp.float32))
-        elif isinstance(b, Glass):
-            kinds.append(GLASS); refl.append(zero3); ior.append(jnp.stack([b.int_ior, b.ext_ior]))
-        else:
-            raise TypeError(f"unknown BSDF {type(b).__name__}")
-        emis.append(zero3)
-    for e in emitters:
-        kinds.append(EMITTER); refl.append(zero3); ior.append(jnp.ones(2, jnp.float32)); emis.append(e.radiance)
+        if type(s.bsdf) not in types:
+            types.append(type(s.bsdf))
+    kind = [types.index(type(s.bsdf)) for s in ordered] + [EMITTER_KIND] * len(emitters)
+    bsdfs = []
+    for t in types:
+        filler = next(s.bsdf for s in ordered if type(s.bsdf) is t)
+        per_shape = [s.bsdf if type(s.bsdf) is t else filler for s in ordered] + [filler] * len(emitters)
+        bsdfs.append(jax.tree.map(lambda *xs: jnp.stack(xs), *per_shape))
 
     def stack(xs, shape):
         return jnp.stack(xs) if xs else jnp.zeros((0,) + shape, jnp.float32)
 
-    all_rects_c = [r.center for r in rects] + [e.center for e in emitters]
-    all_rects_u = [r.edge_u for r in rects] + [e.edge_u for e in emitters]
-    all_rects_v = [r.edge_v for r in rects] + [e.edge_v for e in emitters]
-    all_rects_n = [r.normal for r in rects] + [e.normal for e in emitters]
+    flat = rects + emitters
     return Packed(
         sph_center=stack([s.center for s in spheres], (3,)),
         sph_radius=stack([s.radius for s in spheres], ()),
-        rect_center=stack(all_rects_c, (3,)),
-        rect_u=stack(all_rects_u, (3,)),
-        rect_v=stack(all_rects_v, (3,)),
-        rect_normal=stack(all_rects_n, (3,)),
-        kinds=np.asarray(kinds, dtype=np.int32),
-        reflectance=stack(refl, (3,)),
-        ior=stack(ior, (2,)),
-        emission=stack(emis, (3,)),
+        rect_center=stack([r.center for r in flat], (3,)),
+        rect_u=stack([r.edge_u for r in flat], (3,)),
+        rect_v=stack([r.edge_v for r in flat], (3,)),
+        rect_normal=stack([r.normal for r in flat], (3,)),
+        bsdf_types=tuple(types),
+        bsdf_kind=np.asarray(kind, dtype=np.int32),
+        bsdfs=tuple(bsdfs),
+        emitter_shape=tuple(len(ordered) + j for j in range(len(emitters))),
     )

@@ -339,7 +339,7 @@ def xla_memory(scene, strategy: dict, paths_per_call: int) -> dict | None:
         import jax
         import jax.numpy as jnp
 
-        from ._integrator import Options
+        from ._integrator import SamplingOptions as Options
         from ._render import DEFAULT_CHUNK_PATHS, _render_items, items_per_call, layers_per_batch
 
         n_dev = jax.local_device_count()  # as `render` splits a batch
@@ -461,7 +461,7 @@ def _depth_layers_fn():
     import jax
     import jax.numpy as jnp
 
-    from ._integrator import make_proposal, n_dims, n_iterations, trace_path
+    from ._integrator import make_tracer, n_dims, n_iterations, trace_path
     from ._random import uniforms
     from ._scene import pack
 
@@ -469,8 +469,7 @@ def _depth_layers_fn():
     def layers(scene, key, layer_ids, options):
         cam = scene.camera
         H, W = cam.height, cam.width
-        pk = pack(scene)
-        prop = make_proposal(scene, options, None)
+        tracer = make_tracer(scene, pack(scene), options, None)
         n_iter, K = n_iterations(scene), n_dims(scene)
         rows, cols = jnp.divmod(jnp.arange(H * W), W)
         base = jnp.stack([cols, rows], axis=-1).astype(jnp.float32)
@@ -483,7 +482,7 @@ def _depth_layers_fn():
 
             def one_path(pixel, U_p):
                 o, d = cam.generate_ray(pixel)
-                return trace_path(scene, pk, prop, options, o, d, U_p)
+                return trace_path(tracer, o, d, U_p)
 
             return jax.vmap(one_path)(base + jitter, U)
 
@@ -499,7 +498,7 @@ def depth_study(cfg: Config, log=print) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from ._integrator import Options
+    from ._integrator import SamplingOptions as Options
 
     fn = _depth_layers_fn()
     options = Options(**STRATEGIES[DEFAULT_STRATEGY])

@@ -94,10 +94,9 @@ def _trace_all(theta, theta_ref, key, estimator: str):
     """Radiance `(N_CAMERA_RAYS + N_SPECIAL, 3)` of the camera rays and the special rays at parameters
     `theta = (sigma_t, albedo, g)`; `theta_ref = (sigma_t, g)` of the reference medium ("proposal" only)."""
     scene = SCENE.replace_medium(sigma_t=theta[0], albedo=theta[1], g=theta[2])
-    options = I.Options(estimator=estimator)
+    options = jf.SamplingOptions(estimator=estimator)
     reference = jf.HomogeneousMedium(sigma_t=theta_ref[0], albedo=1.0, phase=jf.HenyeyGreenstein(theta_ref[1]))
-    prop = I.make_proposal(scene, options, reference if estimator == "proposal" else None)
-    pk = pack(scene)
+    tracer = I.make_tracer(scene, pack(scene), options, reference if estimator == "proposal" else None)
     n_it, n_dim = I.n_iterations(scene), I.n_dims(scene)
     # camera rays exactly as `render` makes them: jittered pixel positions, one uniform vector per path
     k_pix, k_path = jax.random.split(key)
@@ -111,7 +110,7 @@ def _trace_all(theta, theta_ref, key, estimator: str):
     d_all = jnp.concatenate([d_cam] + [d_sp] * len(SPECIAL_UNIFORMS))
     u_sp = jnp.concatenate([jnp.full((n_sp_rays, n_it, n_dim), u, jnp.float32) for u in SPECIAL_UNIFORMS])
     u_all = jnp.concatenate([u_cam, u_sp])
-    return jax.vmap(lambda o, d, u: I.trace_path(scene, pk, prop, options, o, d, u))(o_all, d_all, u_all)
+    return jax.vmap(lambda o, d, u: I.trace_path(tracer, o, d, u))(o_all, d_all, u_all)
 
 
 @functools.cache

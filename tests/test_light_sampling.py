@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxfog as jf
-from jaxfog._integrator import light_lobe_pdf, light_lobe_sample
+from jaxfog._sampling import light_lobe_pdf, light_lobe_sample
 from jaxfog._math import safe_normalize
 
 from conftest import FLOOR_CAMERA, make_floor  # tests/ is on sys.path (rootdir conftest)

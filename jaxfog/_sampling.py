@@ -1,0 +1,227 @@
+"""The pure warps of the renderer, each with its pdf: one place for every sampled distribution.
+
+Directions are sampled as a *polar* part `Polar(1 - cos theta, 1 + cos theta)` around an axis (the current
+direction for a phase function, the normal for a diffuse surface, the direction to a light for the light-angle lobe)
+and a uniform azimuth; `to_direction` turns the two into a unit vector. Carrying `1 - cos` and `1 + cos` keeps both
+poles accurate in float32, and lets the tracer build one direction per bounce whichever technique drew it.
+
+Distances: the exponential truncated to a segment (free flight) and Kulla–Fajardo equiangular sampling toward a
+point (`docs/estimators.md`). MIS weights: the power and balance heuristics.
+
+Every function is written for one sample (scalars, 3-vectors); `vmap` happens once, in `_render`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ._math import (
+    INV_4PI,
+    INV_PI,
+    PI,
+    atan2,
+    direction_from_cos,
+    dot,
+    one_minus_cos_between,
+    one_minus_exp_neg,
+    safe_div,
+    safe_normalize,
+    safe_sqrt,
+    sincos,
+    tan,
+)
+
+
+class Polar(NamedTuple):
+    """The polar angle of a sampled direction around its axis: `1 - cos theta` and `1 + cos theta`, each in [0, 2]."""
+
+    one_minus_cos: Float[Array, ""]
+    one_plus_cos: Float[Array, ""]
+
+
+def to_direction(polar: Polar, u_azimuth: Float[Array, ""], axis: Float[Array, "3"]) -> Float[Array, "3"]:
+    """Unit vector at the polar angle `polar` around the unit `axis`, azimuth `2 pi u_azimuth` (u in [0, 1))."""
+    return direction_from_cos(polar.one_minus_cos, polar.one_plus_cos, 2.0 * PI * u_azimuth, axis)
+
+
+# --------------------------------------------------------------------------------------------------- cosine lobe
+def cosine_sample(u: Float[Array, ""]) -> Polar:
+    """Cosine-weighted polar angle around a normal, u in [0, 1): `cos theta = sqrt(1 - u)`, pdf `cos theta / pi`
+    over directions (`cosine_pdf`). `1 - cos = u / (1 + cos)` has no cancellation."""
+    z = safe_sqrt(1.0 - u)
+    return Polar(u / (1.0 + z), 1.0 + z)
+
+
+def cosine_pdf(cos_theta: Float[Array, ""]) -> Float[Array, ""]:
+    """Solid-angle pdf (1/sr) of `cosine_sample`: `max(cos theta, 0) / pi`."""
+    return jnp.maximum(cos_theta, 0.0) * INV_PI
+
+
+# ---------------------------------------------------------------------------------------------- Henyey–Greenstein
+def hg_sample(u: Float[Array, ""], g: Float[Array, ""]) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """Inverse-CDF sample of the HG scattering angle, cancellation-free, with no division by g and no branch.
+
+    **Arguments:** `u` uniform in [0, 1); `g` in (-1, 1).
+
+    **Returns:** `(1 - cos theta, 1 + cos theta)`, each in [0, 2], accurate in float32 for every g in (-1, 1)
+    (including g = 0 and |g| -> 1). With `a = 1 - g`, `b = 1 + g`, `v = 1 - u`, `d = a v + b u`:
+    `1 - cos = 2 a^2 v (v + b u) / d^2`, `1 + cos = 2 b^2 u (a v + u) / d^2`.
+    Differentiable in `g` (the reparameterized HG sample).
+    """
+    a = 1.0 - g
+    b = 1.0 + g
+    v = 1.0 - u
+    d = a * v + b * u
+    inv_d2 = 1.0 / (d * d)
+    one_minus_cos = 2.0 * a * a * v * (v + b * u) * inv_d2
+    one_plus_cos = 2.0 * b * b * u * (a * v + u) * inv_d2
+    return jnp.clip(one_minus_cos, 0.0, 2.0), jnp.clip(one_plus_cos, 0.0, 2.0)
+
+
+def hg_pdf(one_minus_cos: Float[Array, ""], g: Float[Array, ""]) -> Float[Array, ""]:
+    """HG phase function value (= its pdf over solid angle, 1/sr), from `1 - cos theta` in [0, 2] and g in (-1, 1).
+
+    `p = (1 - g)(1 + g) / (4 pi ((1 - g)^2 + 2 g (1 - cos))^(3/2))`: no cancellation near the forward peak. For
+    g < 0 the same denominator is written `(1 + g)^2 - 2 g (1 + cos)` (a sum of two terms >= 0): the first form
+    cancels at the backward peak and rounds to <= 0 for g -> -1 (NaN from the square root, e.g. g = -0.999).
+    """
+    one_plus_cos = jnp.maximum(2.0 - one_minus_cos, 0.0)
+    denom = jnp.where(g >= 0, (1.0 - g) ** 2 + 2.0 * g * one_minus_cos, (1.0 + g) ** 2 - 2.0 * g * one_plus_cos)
+    return (1.0 - g) * (1.0 + g) * INV_4PI / (denom * jnp.sqrt(denom))
+
+
+# --------------------------------------------------------------------------------------------------------- Rayleigh
+RAYLEIGH_NORM = 3.0 / (16.0 * PI)
+
+
+def rayleigh_sample(u: Float[Array, ""]) -> Polar:
+    """Exact inverse-CDF sample of the Rayleigh phase function `3 (1 + mu^2) / (16 pi)`, u in [0, 1).
+
+    The cdf in `mu = cos theta` is `(mu^3 + 3 mu + 4) / 8`, so `mu^3 + 3 mu = 2 z` with `z = 2 (2u - 1)`, whose
+    single real root is `mu = s - 1/s`, `s = cbrt(z + sqrt(z^2 + 1))` (Cardano). The root is odd in z, so it is
+    computed for `|z|` (mu in [0, 1], s >= 1) and mirrored; `1 - mu` near the pole comes from the factorisation
+    `4 - (mu^3 + 3 mu) = (1 - mu)(mu^2 + mu + 4)`, i.e. `1 - mu = (4 - 2|z|) / (mu^2 + mu + 4)`, exact in its
+    numerator, instead of from the cancelling `1 - (s - 1/s)`.
+    """
+    z = 2.0 * (2.0 * u - 1.0)
+    az = jnp.abs(z)
+    s = jnp.cbrt(az + jnp.sqrt(az * az + 1.0))  # >= 1
+    mu_pos = s - 1.0 / s  # in [0, 1] for az in [0, 2]: no cancellation there (s >= 1, 1/s <= 1)
+    # 1 - mu for the mirrored (forward) root from the cubic itself: mu^3 + 3 mu - 4 = (mu - 1)(mu^2 + mu + 4), so
+    # 1 - mu = (4 - 2 az) / (mu^2 + mu + 4) with 2 az = mu^3 + 3 mu: accurate as mu -> 1 (u -> 0 or 1).
+    one_minus_pos = (4.0 - 2.0 * az) / (mu_pos * mu_pos + mu_pos + 4.0)
+    one_plus_pos = 1.0 + mu_pos
+    fwd = z >= 0
+    omc = jnp.where(fwd, one_minus_pos, one_plus_pos)
+    opc = jnp.where(fwd, one_plus_pos, one_minus_pos)
+    return Polar(jnp.clip(omc, 0.0, 2.0), jnp.clip(opc, 0.0, 2.0))
+
+
+def rayleigh_pdf(one_minus_cos: Float[Array, ""]) -> Float[Array, ""]:
+    """Rayleigh phase function value (= its pdf, 1/sr) from `1 - cos theta` in [0, 2]: `3 (1 + mu^2) / (16 pi)`."""
+    mu = 1.0 - one_minus_cos
+    return RAYLEIGH_NORM * (1.0 + mu * mu)
+
+
+# ------------------------------------------------------------------------------------------------ light-angle lobe
+def light_lobe_cos(u: Float[Array, ""]) -> Polar:
+    """Polar part of the light-angle lobe around the direction to a light: `alpha = pi (1 - sqrt(1 - u))`, u in
+    [0, 1), the inverse of the lobe's polar cdf `1 - (1 - alpha / pi)^2` (density `2 (pi - alpha) / pi^2`)."""
+    sin_h, cos_h = sincos(0.5 * PI * (1.0 - safe_sqrt(1.0 - u)))
+    return Polar(2.0 * sin_h * sin_h, 2.0 * cos_h * cos_h)
+
+
+def light_lobe_sample(u: Float[Array, "2"], x: Float[Array, "3"], light_pos: Float[Array, "3"]) -> Float[Array, "3"]:
+    """Direction from `x` at angle alpha to the direction toward `light_pos`, with density `2 (pi - alpha) / pi^2`
+    in alpha (u[0]) and uniform in azimuth (phi = 2 pi u[1])."""
+    return to_direction(light_lobe_cos(u[0]), u[1], safe_normalize(light_pos - x))
+
+
+def light_lobe_pdf(w: Float[Array, "3"], x: Float[Array, "3"], light_pos: Float[Array, "3"]) -> Float[Array, ""]:
+    """Solid-angle pdf of `light_lobe_sample`: `(pi - alpha) / (pi^3 sin alpha)` (1/sr; its limit 1/pi^3 at
+    alpha = pi; 0 at exactly alpha = 0, where it is infinite, a direction the sampler produces with probability 0).
+
+    It is the angular profile of the light a point light sends into a line: a ray from `x` leaving at angle alpha
+    to the light passes it at `D = r sin alpha` and, unattenuated and isotropically scattered, collects light
+    `(pi - alpha) / D` (the angle the ray subtends at the light over D). So the lobe cancels the `1/D` of the light
+    scattered along a segment passing near a point light (docs/estimators.md), for any direction the mixture
+    produces."""
+    a = safe_normalize(light_pos - x)
+    omc = one_minus_cos_between(w, a)
+    sin_a = safe_sqrt(omc * jnp.maximum(2.0 - omc, 0.0))
+    beta = atan2(sin_a, omc - 1.0)  # pi - alpha, accurate near alpha = pi
+    # double where: beta / sin(beta) -> 1 at beta = 0 (alpha = pi); beta = pi with sin_a = 0 (alpha = 0) gives 0
+    ok = sin_a > 0
+    ratio = jnp.where(ok, beta / jnp.where(ok, sin_a, 1.0), jnp.where(beta < 1.0, 1.0, 0.0))
+    return ratio / PI**3
+
+
+# ------------------------------------------------------------------------------------------ truncated exponential
+def sample_truncated_exponential(
+    x: Float[Array, ""], rate: Float[Array, ""], s: Float[Array, ""]
+) -> Float[Array, ""]:
+    """`t` in [0, s) from the exponential with `rate` > 0 (1/scene unit) truncated to [0, s]; `x` uniform in [0, 1).
+
+    `t = -log1p(-x (1 - exp(-rate s))) / rate`, differentiable in `rate` (the reparameterized free flight).
+    """
+    m = one_minus_exp_neg(rate * s)
+    return -jnp.log1p(-x * m) / rate
+
+
+def truncated_exponential_pdf(t, rate, s) -> Float[Array, ""]:
+    """Density (1/scene unit) of `sample_truncated_exponential` at `t` in [0, s]: `rate exp(-rate t) / (1 - exp(-rate s))`."""
+    return rate * jnp.exp(-rate * t) / one_minus_exp_neg(rate * s)
+
+
+# ------------------------------------------------------------------------------------------------------ equiangular
+HALF_PI_BELOW = 1.5707962
+"""The largest float32 below pi/2: float32(pi/2) is above pi/2, where tan flips sign."""
+
+
+class Equiangular(NamedTuple):
+    """Kulla–Fajardo equiangular sampling of `t` in `[ta, tb]` along a ray toward a point `c`: `delta = dot(c - o, d)`
+    (the ray parameter of the closest approach), `D` its distance (floored at 1e-7), the angles `theta_a`, `theta_b`
+    of the interval's ends seen from `c`, and `valid` (a non-empty interval)."""
+
+    delta: Float[Array, ""]
+    D: Float[Array, ""]
+    theta_a: Float[Array, ""]
+    theta_b: Float[Array, ""]
+    valid: Bool[Array, ""]
+
+
+def equiangular_setup(c, o, d, ta, tb) -> Equiangular:
+    """The equiangular sampler of `t` in `[ta, tb]` (scene units) on the ray `o + t d` (unit `d`) toward the point `c`."""
+    delta = dot(c - o, d)
+    v = c - o - delta * d
+    D = jnp.maximum(safe_sqrt(dot(v, v)), 1e-7)
+    valid = tb > ta
+    ta = jnp.where(valid, ta, 0.0)
+    tb = jnp.where(valid, tb, 1.0)
+    th_a = jnp.clip(atan2(ta - delta, D), -HALF_PI_BELOW, HALF_PI_BELOW)
+    th_b = jnp.clip(atan2(tb - delta, D), -HALF_PI_BELOW, HALF_PI_BELOW)
+    return Equiangular(delta, D, th_a, th_b, valid & (th_b > th_a))
+
+
+def equiangular_sample(eq: Equiangular, u: Float[Array, ""], s: Float[Array, ""]) -> Float[Array, ""]:
+    """`t = delta + D tan(theta)`, theta uniform in `[theta_a, theta_b]` (u in [0, 1)); clipped to `[0, s]`, 0 if
+    the interval is empty."""
+    th = eq.theta_a + u * (eq.theta_b - eq.theta_a)
+    return jnp.clip(jnp.where(eq.valid, eq.delta + eq.D * tan(th), 0.0), 0.0, s)
+
+
+def equiangular_pdf(eq: Equiangular, t: Float[Array, ""]) -> Float[Array, ""]:
+    """Density (1/scene unit) of `equiangular_sample` at `t`: `D / ((theta_b - theta_a) (D^2 + (t - delta)^2))`."""
+    r = t - eq.delta
+    th = atan2(r, eq.D)  # compare angles, not tan(theta) * D, which overflows for rays grazing the light
+    inside = eq.valid & (th >= eq.theta_a - 1e-6) & (th <= eq.theta_b + 1e-6)
+    return jnp.where(inside, eq.D / (jnp.where(eq.valid, eq.theta_b - eq.theta_a, 1.0) * (eq.D * eq.D + r * r)), 0.0)
+
+
+# --------------------------------------------------------------------------------------------------------- MIS
+def power_heuristic(a, b):
+    """MIS weight `a^2 / (a^2 + b^2)` (0 where both are 0)."""
+    return safe_div(a * a, a * a + b * b)
