@@ -5,7 +5,7 @@ segment (equiangular, MIS with the free-flight vertex) -> direct light at the ve
 (phase function or BSDF) -> update `PathState`. What a scene lacks (fog, glass, area lights, delta lights) is decided
 in Python and never compiled.
 
-Estimators (see `_medium` and `estimators.md`) change only the *sampling* parameters `Proposal(sigma_hat, g_hat)`:
+Estimators (see `_medium` and `docs/estimators.md`) change only the *sampling* parameters `Proposal(sigma_hat, g_hat)`:
 detached (`stop_gradient` of the medium's values), a caller's fixed proposal, or the medium's own values
 (reparameterized: sampled distances and directions move with the parameters). Every weight is `f(theta) / pdf`.
 """
@@ -242,7 +242,7 @@ def light_lobe_pdf(w, x, light_pos):
     It is the angular profile of the light a point light sends into a line: a ray from `x` leaving at angle alpha
     to the light passes it at `D = r sin alpha` and, unattenuated and isotropically scattered, collects light
     `(pi - alpha) / D` (the angle the ray subtends at the light over D). So the lobe cancels the `1/D` of the light
-    scattered along a segment passing near a point light (estimators.md), for any direction the mixture produces."""
+    scattered along a segment passing near a point light (docs/estimators.md), for any direction the mixture produces."""
     a = safe_normalize(light_pos - x)
     omc = one_minus_cos_between(w, a)
     sin_a = safe_sqrt(omc * jnp.maximum(2.0 - omc, 0.0))

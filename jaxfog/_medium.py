@@ -1,6 +1,6 @@
 """Homogeneous participating medium: the Module, and the pure free-flight sampling math.
 
-Free-flight sampling in jaxfog is one formula for every gradient estimator (`estimators.md`). A segment of length
+Free-flight sampling in jaxfog is one formula for every gradient estimator (`docs/estimators.md`). A segment of length
 `s` (to the next surface, or to the medium's `extent` for a ray that escapes) is split into two branches chosen with a
 probability `q` that never carries a derivative:
 

@@ -1,6 +1,6 @@
 """Henyey–Greenstein phase function: pure sampling and evaluation, and the Module the integrator uses.
 
-Convention (`conventions.md`): theta is the angle between the direction light travelled before scattering and the
+Convention (`docs/conventions.md`): theta is the angle between the direction light travelled before scattering and the
 direction it travels after. `g > 0` scatters forward, `E[cos theta] = g`, valid range `-1 < g < 1`.
 
 For a path traced from the camera with current ray direction `d`, the light travels along `-d`; the scattering

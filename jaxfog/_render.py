@@ -133,7 +133,7 @@ def render(
     - `estimator`: how derivatives are estimated (values are the same in expectation): `"detached"` (default;
       detached sampling, attached weights), `"reparam"` (reparameterized free flight and HG), `"proposal"` (sampling
       from the fixed reference `proposal`, a `HomogeneousMedium`; a smooth deterministic function of the parameters
-      for a fixed key). See `estimators.md`.
+      for a fixed key). See `docs/estimators.md`.
     - `equiangular`: equiangular sampling toward point and spot lights, MIS-combined with free flight.
     - `light_lobe`: probability (in [0, 1); default 0.3) of sampling scattering directions from the light-angle lobe
       (density `2 (pi - alpha) / pi^2` in the angle alpha to a point/spot light) instead of from the phase function /
