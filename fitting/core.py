@@ -1,6 +1,6 @@
 """The fit: optimistix least squares on rendered-minus-target residuals, with the "proposal" estimator.
 
-Why "proposal" (estimators.md): for a fixed key and a fixed reference `theta_ref`, the rendered image is a smooth,
+Why "proposal" (docs/estimators.md): for a fixed key and a fixed reference `theta_ref`, the rendered image is a smooth,
 deterministic function of the parameters that is an unbiased estimate at every value, which is what
 Levenberg–Marquardt and BFGS assume. Its weights `f(theta) / p(theta_ref)` have finite variance only while
 `sigma_t > sigma_ref / 2`, so between solves `theta_ref` is re-centred on the estimate and a fresh key is drawn,

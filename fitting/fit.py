@@ -84,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--downscale", type=int, default=None,
                    help="fit at 1/F of the target resolution (box-pooled target; default: the largest F that divides "
                         "the image size and leaves at least 8 px a side: few pixels with many samples each keep "
-                        "the Jacobian's noise low, docs/fit_sweep)")
+                        "the Jacobian's noise low, docs/results/fit_sweep)")
     p.add_argument("--rounds", type=int, default=20, help="re-centring rounds at most, each with a fresh key (default 20)")
     p.add_argument("--repeats", type=int, default=7, help="the estimate is the mean of the last REPEATS+1 rounds (default 7)")
     p.add_argument("--value-spp-factor", type=int, default=None, metavar="K",

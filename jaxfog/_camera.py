@@ -1,4 +1,4 @@
-"""Pinhole camera (conventions.md): `fov` is the full horizontal field of view; pixel (0, 0) is the top-left."""
+"""Pinhole camera (docs/conventions.md): `fov` is the full horizontal field of view; pixel (0, 0) is the top-left."""
 
 from __future__ import annotations
 

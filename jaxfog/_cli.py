@@ -1,7 +1,7 @@
 """The `jaxfog` command line: `jaxfog render SCENE.json -o OUT.exr [...]` (also `python -m jaxfog`).
 
 Subcommands are entries in `COMMANDS`: a name, a one-line help, `configure(parser)` adding its arguments and
-`run(args) -> exit code`. `bench` and `fit` add themselves there. Expected failures (an invalid scene, a bad argument,
+`run(args) -> exit code`: `render` and `bench` (no `fit`). Expected failures (an invalid scene, a bad argument,
 an unwritable output) print one line `jaxfog: error: ...` and exit non-zero, without a traceback.
 """
 

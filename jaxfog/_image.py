@@ -1,4 +1,4 @@
-"""Image files: linear float32 OpenEXR (the data), sRGB 8-bit PNG (a tonemapped preview only; conventions.md).
+"""Image files: linear float32 OpenEXR (the data), sRGB 8-bit PNG (a tonemapped preview only; docs/conventions.md).
 
 Every write is atomic: the image goes to a temp file in the destination's directory (`.NAME.tmp-<pid>.exr`, the real
 extension last so OpenImageIO picks the format) and is `os.replace`d onto the destination; on any error the temp file
@@ -119,7 +119,7 @@ def srgb_oetf(linear: np.ndarray) -> np.ndarray:
 def write_png(path, rgb, exposure: float = 0.0) -> None:
     """Write a tonemapped 8-bit sRGB preview, atomically: `rgb * 2**exposure`, clipped to [0, 1], sRGB-encoded.
 
-    A preview only (conventions.md): data go to `write_exr`. **Raises** as `write_exr`.
+    A preview only (docs/conventions.md): data go to `write_exr`. **Raises** as `write_exr`.
     """
     pixels = _as_rgb(rgb)
     encoded = srgb_oetf(pixels * np.float32(2.0 ** float(exposure)))

@@ -131,7 +131,7 @@ def luminance(rgb: Float[Array, "... 3"]) -> Float[Array, "..."]:
 
 # ---------------------------------------------------------------- vectorizable trigonometry (polynomials, float32)
 # XLA on a CPU evaluates jnp.sin / cos / tan / arctan2 as scalar library calls (5-17 ns per element on the benchmark
-# machine, against 0.3-0.5 ns for exp, sqrt or a polynomial; docs/bench/PROFILE.md). The paths' angles need float32
+# machine, against 0.3-0.5 ns for exp, sqrt or a polynomial; docs/results/bench/PROFILE.md). The paths' angles need float32
 # accuracy only, so these use the Cephes single-precision polynomials (S. Moshier), which XLA vectorizes.
 
 _PIO4_1, _PIO4_2, _PIO4_3 = 0.78515625, 2.4187564849853515625e-4, 3.77489497744594108e-8  # pi/4 in three parts

@@ -1,7 +1,7 @@
 """The paths' uniform random numbers: a counter-based integer hash keyed by a JAX PRNG key.
 
 A sample layer needs `H*W x n_iterations x n_dims` uniforms (a million at 128 x 128 and depth 8). Drawing them with
-`jax.random.uniform` (threefry-2x32, 20 rounds) cost 15% of a sample on a CPU (docs/bench/PROFILE.md); this hash costs
+`jax.random.uniform` (threefry-2x32, 20 rounds) cost 15% of a sample on a CPU (docs/results/bench/PROFILE.md); this hash costs
 about a tenth of that. It is for Monte Carlo sampling only, not cryptography:
 
     h_row = mix(row ^ k0),  a_col = mix(col ^ k1),  u[row, col] = mix(mix(h_row + a_col) ^ k2) / 2^32   (uint32 arithmetic)

@@ -33,7 +33,7 @@ class Scene(eqx.Module):
     `SpotLight`, `AreaLight`); `medium`: a medium (`HomogeneousMedium`) or None (no fog: no medium code is
     compiled); `max_depth`: static int
     >= 1, the longest path in segments from the camera to a light, the light-sampling segment included
-    (conventions.md; 8 is the default, 2 is single scattering).
+    (docs/conventions.md; 8 is the default, 2 is single scattering).
     """
 
     camera: Camera

@@ -1,7 +1,7 @@
 """The same scene in Mitsuba 3, for the side-by-side run of `jaxfog.bench` (optional extra: `pip install -e .[compare]`).
 
 `scene_dict(data)` turns a validated jaxfog scene-file dict (`load_scene(...).data`) into a `mi.load_dict` dict with
-the conventions of `shared/design/conventions.md` (which are Mitsuba 3's):
+the conventions of `docs/conventions.md` (which are Mitsuba 3's):
 
 - camera: `perspective`, `fov_axis = "x"`, `to_world = look_at(origin, target, up)`, `hdrfilm` with a box filter;
 - fog: `homogeneous` (`sigma_t`, `albedo`, `hg` phase with `g`) inside a large cube (`scale(extent / 2)` around the

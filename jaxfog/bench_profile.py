@@ -11,7 +11,7 @@ default of the command-line tools), the same render on one device.
 
 The machine may be shared, so configurations are interleaved (A, B, C, A, B, C, ...) and medians are compared as
 ratios to the default inside one run; never compare absolute times across runs. Writes `profile.json` to `--out`
-(default `docs/bench/profile`) and prints a table (ms per spp = one sample of every pixel of the whole image).
+(default `docs/results/bench/profile`) and prints a table (ms per spp = one sample of every pixel of the whole image).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def _rng_fn(scene, spp):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="few configurations, 4 spp, 2 repetitions (a smoke test)")
-    ap.add_argument("--out", default="docs/bench/profile", help="output folder (default docs/bench/profile)")
+    ap.add_argument("--out", default="docs/results/bench/profile", help="output folder (default docs/results/bench/profile)")
     ap.add_argument("--scene", default=SCENE)
     ap.add_argument("--spp", type=int, default=None, help="samples per pixel per timing (default 16; quick 4)")
     ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; quick 2)")
