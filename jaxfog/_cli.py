@@ -119,7 +119,7 @@ def _run_render(args: argparse.Namespace) -> int:
         "jaxfog:spp": str(spp),
         "jaxfog:seed": str(args.seed),
         "jaxfog:estimator": args.estimator,
-        "jaxfog:medium": json.dumps(sf.data["medium"]),
+        "jaxfog:medium": json.dumps(_without_nulls(sf.data["medium"])),
         "jaxfog:overrides": json.dumps(list(args.overrides)),
         "jaxfog:scene_json": json.dumps(sf.data),
         "jaxfog:version": _version(),
@@ -138,6 +138,13 @@ def _run_render(args: argparse.Namespace) -> int:
     print(f"compile {compile_timer.seconds:.2f} s, wall {wall:.2f} s "
           f"(render {max(wall - compile_timer.seconds, 0.0):.2f} s)")
     return 0
+
+
+def _without_nulls(value):
+    """A validated scene value with the keys that were left out (None) dropped, for compact headers."""
+    if isinstance(value, dict):
+        return {k: _without_nulls(v) for k, v in value.items() if v is not None}
+    return value
 
 
 def _version() -> str:

@@ -16,11 +16,16 @@ cross-field `checks`. Adding a light or a BSDF is one entry in `LIGHTS` / `BSDFS
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import os
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
+
+from ._bsdf import Glass, Mirror
+from ._lights import SPOT_CUTOFF_DEFAULT, spot_beam_width_default
+from ._medium import HomogeneousMedium
 
 __all__ = ["SceneError", "SceneFile", "load_scene", "scene_from_dict", "apply_overrides", "SCHEMA"]
 
@@ -113,9 +118,11 @@ class Section:
 
 @dataclass(frozen=True)
 class Typed:
-    """A JSON object whose `"type"` key picks one of `choices` (type name -> `Section`)."""
+    """A JSON object whose `"type"` key picks one of `choices` (type name -> `Section`); `default`: the type of an
+    object that gives none (None: `"type"` is required)."""
 
     choices: dict
+    default: str | None = None
 
 
 @dataclass(frozen=True)
@@ -175,7 +182,15 @@ def _make(class_name: str) -> Callable:
     return build
 
 
-def _build_medium(sigma_t, albedo, g, extent):
+def _module_default(cls, name: str):
+    """The default of the Module field `cls.name` (the scene files take their defaults from the Modules)."""
+    for f in dataclasses.fields(cls):
+        if f.name == name:
+            return f.default
+    raise KeyError(name)  # pragma: no cover
+
+
+def _build_homogeneous(sigma_t, albedo, g, phase, extent):
     import jax.numpy as jnp
 
     from ._medium import HomogeneousMedium
@@ -183,16 +198,27 @@ def _build_medium(sigma_t, albedo, g, extent):
 
     # g as a strongly typed float32 (a bare Python float would be weakly typed, and a fit that later passes a float32
     # array would compile a second program).
-    phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
+    if phase is None:
+        phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
     return HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=phase, extent=float(extent))
+
+
+def _phase_or_g(values: dict, path: str) -> None:
+    """A medium gives its phase function either as `phase` or, for Henyey–Greenstein, as the shorthand `g`."""
+    if (values["g"] is None) == (values["phase"] is None):
+        problem = "both g and phase given" if values["g"] is not None else "missing phase function"
+        raise _Invalid(_join(path, "phase"), problem,
+                       'expected either "g" (Henyey–Greenstein) or "phase": {"type": ...}, not both')
 
 
 # ---------------------------------------------------------------------------------------------------- the schema
 BSDFS = {
     "diffuse": Section({"reflectance": Field(RGB, range=UNIT)}, build=_make("Diffuse")),
-    "mirror": Section({"reflectance": Field(RGB, default=1.0, range=UNIT)}, build=_make("Mirror")),
+    "mirror": Section({"reflectance": Field(RGB, default=_module_default(Mirror, "reflectance"), range=UNIT)},
+                      build=_make("Mirror")),
     "glass": Section(
-        {"int_ior": Field(NUMBER, default=1.5, range=POSITIVE), "ext_ior": Field(NUMBER, default=1.0, range=POSITIVE)},
+        {"int_ior": Field(NUMBER, default=_module_default(Glass, "int_ior"), range=POSITIVE),
+         "ext_ior": Field(NUMBER, default=_module_default(Glass, "ext_ior"), range=POSITIVE)},
         build=_make("Glass"),
     ),
 }
@@ -221,9 +247,10 @@ LIGHTS = {
             "position": Field(VEC3),
             "direction": Field(VEC3, nonzero=True),
             "intensity": Field(RGB, range=NON_NEGATIVE),
-            "cutoff_angle": Field(NUMBER, default=20.0, range=Range(0, 90, lo_open=True)),
+            "cutoff_angle": Field(NUMBER, default=SPOT_CUTOFF_DEFAULT, range=Range(0, 90, lo_open=True)),
             "beam_width": Field(
-                NUMBER, default=lambda v: 0.75 * v["cutoff_angle"], range=Range(0, "cutoff_angle", lo_open=True)
+                NUMBER, default=lambda v: spot_beam_width_default(v["cutoff_angle"]),
+                range=Range(0, "cutoff_angle", lo_open=True)
             ),
         },
         build=_make("SpotLight"),
@@ -253,15 +280,28 @@ CAMERA = Section(
     build=_make("Camera"),
 )
 
-MEDIUM = Section(
-    {
-        "sigma_t": Field(RGB, range=NON_NEGATIVE),
-        "albedo": Field(RGB, range=UNIT),
-        "g": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True)),
-        "extent": Field(NUMBER, default=1000.0, range=POSITIVE),
-    },
-    build=_build_medium,
-)
+PHASES = {
+    "hg": Section({"g": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True))}, build=_make("HenyeyGreenstein")),
+    "rayleigh": Section({}, build=_make("Rayleigh")),
+}
+"""Phase functions, selected as `"phase": {"type": ...}` in a medium; a bare `"g"` in the medium means `"hg"`."""
+
+MEDIA = {
+    "homogeneous": Section(
+        {
+            "sigma_t": Field(RGB, range=NON_NEGATIVE),
+            "albedo": Field(RGB, range=UNIT),
+            "g": Field(NUMBER, default=None, range=Range(-1, 1, lo_open=True, hi_open=True)),
+            "phase": Field(Typed(PHASES), default=None),
+            "extent": Field(NUMBER, default=_module_default(HomogeneousMedium, "extent"), range=POSITIVE),
+        },
+        checks=(_phase_or_g,),
+        build=_build_homogeneous,
+    ),
+}
+"""Media, selected by the medium's `"type"` (default `"homogeneous"`)."""
+
+MEDIUM = Typed(MEDIA, default="homogeneous")
 
 INTEGRATOR = Section(
     {"max_depth": Field(INTEGER, default=8, range=AT_LEAST_1), "spp": Field(INTEGER, default=64, range=AT_LEAST_1)}
@@ -294,7 +334,7 @@ def _check(value, spec, path: str, rng: Range = ANY, nonzero: bool = False, sibl
         names = ", ".join(repr(k) for k in spec.choices)
         if not isinstance(value, dict):
             raise _Invalid(path, f"got {_describe(value)}", f"expected an object with \"type\" one of {names}")
-        kind = value.get("type", REQUIRED)
+        kind = value.get("type", REQUIRED if spec.default is None else spec.default)
         if kind is REQUIRED:
             raise _Invalid(_join(path, "type"), "missing required field", f"valid types: {names}")
         if not isinstance(kind, str) or kind not in spec.choices:
@@ -434,7 +474,7 @@ def _set_path(data, parts: list, value) -> None:
     for i, part in enumerate(parts):
         last = i == len(parts) - 1
         if isinstance(spec, Typed):  # the object's own "type" picks the schema; "type" itself is in the object
-            spec = spec.choices.get(node.get("type")) if isinstance(node, dict) else None
+            spec = spec.choices.get(node.get("type", spec.default)) if isinstance(node, dict) else None
         if isinstance(node, list):
             if not part.lstrip("-").isdigit():
                 raise _Invalid(path, f"{part!r} is not a list index", f"valid indices: 0..{len(node) - 1}")

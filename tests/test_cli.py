@@ -29,7 +29,8 @@ def test_render_writes_exr_and_png_with_metadata(tmp_path, capsys):
     assert rgb.shape == (8, 8, 3) and np.all(np.isfinite(rgb)) and rgb.mean() > 0
     assert header["jaxfog:scene"] == "spot_fog" and header["jaxfog:spp"] == "2" and header["jaxfog:seed"] == "3"
     assert header["jaxfog:estimator"] == "detached"
-    assert json.loads(header["jaxfog:medium"]) == {"sigma_t": 0.8, "albedo": 0.9, "g": 0.6, "extent": 1000.0}
+    assert json.loads(header["jaxfog:medium"]) == {"type": "homogeneous", "sigma_t": 0.8, "albedo": 0.9, "g": 0.6,
+                                                     "extent": 1000.0}
     assert json.loads(header["jaxfog:overrides"])[-1] == "medium.sigma_t=0.8"
     assert json.loads(header["jaxfog:scene_json"])["camera"]["width"] == 8
     inp = oiio.ImageInput.open(str(png))

@@ -241,7 +241,7 @@ def test_bad_override_syntax(override, shown):
 
 
 @pytest.mark.parametrize("override, shown, valid", [
-    ("medium.sigmat=1", "medium.sigmat: does not exist", "valid keys: sigma_t, albedo, g, extent"),
+    ("medium.sigmat=1", "medium.sigmat: does not exist", "valid keys: sigma_t, albedo, g, phase, extent"),
     ("shapes.7.radius=1", "shapes[7]: does not exist (shapes has 2 entries)", "valid indices: 0..1"),
     ("lights.first.intensity=1", "'first' is not a list index", "valid indices: 0..0"),
     ("camera.width.3=1", "camera.width.3: does not exist (camera.width is int 128)", "existing key path"),
