@@ -6,10 +6,14 @@
 | `g` | HG asymmetry in (-1, 1) | `atanh g` |
 | `albedo` | single-scattering albedo in (0, 1), all channels | `logit albedo` |
 | `intensity` | intensity (W/sr) of the scene's first light, all channels (radiance for an area light) | `log intensity` |
+
+Each parameter is a `ParamSpec` in `SPECS`: a `Transform` to the unconstrained coordinate and `get` / `set` on a
+scene; parameters of the medium or its phase function are made with `medium_param`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
@@ -20,14 +24,18 @@ import numpy as np
 import jaxfog
 
 
+class FitError(ValueError):
+    """Bad fit arguments (unknown parameter, value out of range, wrong target, missing file)."""
+
+
 @dataclass(frozen=True)
-class ParamSpec:
-    name: str
+class Transform:
+    """A bijection between a parameter's valid open interval and the real line: `to_u`, `from_u` (jnp, traceable)
+    and `dx_du(u)` (numpy, the derivative of `from_u`)."""
+
     to_u: Callable
     from_u: Callable
-    lo: float
-    hi: float
-    unit: str
+    dx_du: Callable
 
 
 def _logit(x):
@@ -38,16 +46,94 @@ def _sigmoid(u):
     return 1.0 / (1.0 + jnp.exp(-u))
 
 
+LOG = Transform(jnp.log, jnp.exp, np.exp)
+"""(0, inf) <-> R: `u = log x`."""
+
+ATANH = Transform(jnp.arctanh, jnp.tanh, lambda u: 1.0 - np.tanh(u) ** 2)
+"""(-1, 1) <-> R: `u = atanh x`."""
+
+LOGIT = Transform(_logit, _sigmoid, lambda u: (1.0 / (1.0 + np.exp(-u))) * (1.0 - 1.0 / (1.0 + np.exp(-u))))
+"""(0, 1) <-> R: `u = logit x`."""
+
+
+def interval(lo: float, hi: float) -> Transform:
+    """(lo, hi) <-> R: `u = logit((x - lo) / (hi - lo))`."""
+    w = hi - lo
+    return Transform(lambda x: _logit((x - lo) / w), lambda u: lo + w * _sigmoid(u), lambda u: w * LOGIT.dx_du(u))
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """A fit parameter: its `name`, the `transform` to the solver's unconstrained coordinate, the open interval
+    `(lo, hi)` of valid values, the `unit`, and how it is read from (`get`, a float; raises FitError when the scene
+    has no such parameter) and written into (`set(scene, value)`, value a scalar or traced scalar) a scene."""
+
+    name: str
+    transform: Transform
+    lo: float
+    hi: float
+    unit: str
+    get: Callable
+    set: Callable
+
+    def to_u(self, x):
+        return self.transform.to_u(x)
+
+    def from_u(self, u):
+        return self.transform.from_u(u)
+
+
+def _medium(scene, name):
+    if scene.medium is None:
+        raise FitError(f"cannot fit {name}: the scene has no medium")
+    return scene.medium
+
+
+def medium_param(name: str, transform: Transform, lo: float, hi: float, unit: str = "", field: str | None = None):
+    """A parameter that is a field of the scene's medium or of its phase function (`Scene.replace_medium` routes
+    it); RGB fields are fitted grey (the mean is read, one value is written to every channel)."""
+    field = field or name
+
+    def owner(scene):
+        med = _medium(scene, name)
+        for obj in (med, med.phase):
+            if field in {f.name for f in dataclasses.fields(obj)}:
+                return obj
+        raise FitError(f"cannot fit {name}: the scene's medium ({type(med).__name__} with "
+                       f"{type(med.phase).__name__}) has no parameter {field!r}")
+
+    def get(scene):
+        return float(jnp.mean(getattr(owner(scene), field)))
+
+    def set_(scene, value):
+        shape = jnp.shape(getattr(owner(scene), field))
+        return scene.replace_medium(**{field: jnp.broadcast_to(value, shape)})
+
+    return ParamSpec(name, transform, lo, hi, unit, get, set_)
+
+
+def _light_field(scene):
+    if not scene.lights:
+        raise FitError("cannot fit intensity: the scene has no light")
+    return "radiance" if isinstance(scene.lights[0], jaxfog.AreaLight) else "intensity"
+
+
+def _get_intensity(scene):
+    return float(jnp.mean(getattr(scene.lights[0], _light_field(scene))))
+
+
+def _set_intensity(scene, value):
+    field = _light_field(scene)
+    return eqx.tree_at(lambda s: getattr(s.lights[0], field), scene, jnp.broadcast_to(value, (3,)))
+
+
 SPECS = {
-    "sigma_t": ParamSpec("sigma_t", jnp.log, jnp.exp, 0.0, np.inf, "1/unit"),
-    "g": ParamSpec("g", jnp.arctanh, jnp.tanh, -1.0, 1.0, ""),
-    "albedo": ParamSpec("albedo", _logit, _sigmoid, 0.0, 1.0, ""),
-    "intensity": ParamSpec("intensity", jnp.log, jnp.exp, 0.0, np.inf, "W/sr"),
+    "sigma_t": medium_param("sigma_t", LOG, 0.0, np.inf, "1/unit"),
+    "g": medium_param("g", ATANH, -1.0, 1.0),
+    "albedo": medium_param("albedo", LOGIT, 0.0, 1.0),
+    "intensity": ParamSpec("intensity", LOG, 0.0, np.inf, "W/sr", _get_intensity, _set_intensity),
 }
-
-
-class FitError(ValueError):
-    """Bad fit arguments (unknown parameter, value out of range, wrong target, missing file)."""
+"""Every fit parameter by name. A model adds its parameters here (e.g. with `medium_param`)."""
 
 
 def check_names(names) -> list[str]:
@@ -71,33 +157,20 @@ def check_value(name: str, value: float) -> float:
 
 
 def scene_values(scene: jaxfog.Scene) -> dict[str, float]:
-    """The scene's current value of every fit parameter (grey: mean over channels)."""
+    """The scene's current value of every fit parameter it has (grey: mean over channels)."""
     out = {}
-    if scene.medium is not None:
-        out["sigma_t"] = float(jnp.mean(scene.medium.sigma_t))
-        out["g"] = float(scene.medium.g)
-        out["albedo"] = float(jnp.mean(scene.medium.albedo))
-    if scene.lights:
-        light = scene.lights[0]
-        field = "radiance" if isinstance(light, jaxfog.AreaLight) else "intensity"
-        out["intensity"] = float(jnp.mean(getattr(light, field)))
+    for name, spec in SPECS.items():
+        try:
+            out[name] = spec.get(scene)
+        except (FitError, AttributeError):
+            pass
     return out
 
 
 def apply(scene: jaxfog.Scene, values: dict) -> jaxfog.Scene:
     """A copy of `scene` with the given parameter values (scalars or traced scalars) written in."""
-    med_values = {k: values[k] for k in ("sigma_t", "albedo", "g") if k in values}
-    if med_values:
-        if scene.medium is None:
-            raise FitError(f"cannot fit {sorted(med_values)}: the scene has no medium")
-        med_values = {k: (v if k == "g" else jnp.broadcast_to(v, (3,))) for k, v in med_values.items()}
-        scene = scene.replace_medium(**med_values)
-    if "intensity" in values:
-        if not scene.lights:
-            raise FitError("cannot fit intensity: the scene has no light")
-        light = scene.lights[0]
-        field = "radiance" if isinstance(light, jaxfog.AreaLight) else "intensity"
-        scene = eqx.tree_at(lambda s: getattr(s.lights[0], field), scene, jnp.broadcast_to(values["intensity"], (3,)))
+    for name, value in values.items():
+        scene = SPECS[name].set(scene, value)
     return scene
 
 
@@ -111,14 +184,4 @@ def from_unconstrained(names, y) -> dict:
 
 def jacobian_to_params(names, y) -> np.ndarray:
     """d(param)/d(unconstrained), diagonal, as a vector."""
-    out = []
-    for i, n in enumerate(names):
-        yi = float(y[i])
-        if n in ("sigma_t", "intensity"):
-            out.append(np.exp(yi))
-        elif n == "g":
-            out.append(1.0 - np.tanh(yi) ** 2)
-        else:
-            s = 1.0 / (1.0 + np.exp(-yi))
-            out.append(s * (1.0 - s))
-    return np.asarray(out)
+    return np.asarray([SPECS[n].transform.dx_du(float(y[i])) for i, n in enumerate(names)])
