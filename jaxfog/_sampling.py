@@ -103,16 +103,18 @@ def rayleigh_sample(u: Float[Array, ""]) -> Polar:
     The cdf in `mu = cos theta` is `(mu^3 + 3 mu + 4) / 8`, so `mu^3 + 3 mu = 2 z` with `z = 2 (2u - 1)`, whose
     single real root is `mu = s - 1/s`, `s = cbrt(z + sqrt(z^2 + 1))` (Cardano). The root is odd in z, so it is
     computed for `|z|` (mu in [0, 1], s >= 1) and mirrored; `1 - mu` near the pole comes from the factorisation
-    `4 - (mu^3 + 3 mu) = (1 - mu)(mu^2 + mu + 4)`, i.e. `1 - mu = (4 - 2|z|) / (mu^2 + mu + 4)`, exact in its
-    numerator, instead of from the cancelling `1 - (s - 1/s)`.
+    `4 - (mu^3 + 3 mu) = (1 - mu)(mu^2 + mu + 4)`, i.e. `1 - mu = (4 - 2|z|) / (mu^2 + mu + 4)` with the
+    numerator written `8 min(u, 1 - u)` (no rounding of `2u - 1`), instead of from the cancelling `1 - (s - 1/s)`.
+    Both halves are accurate to float32 precision at both poles (`tests/test_interfaces.py`).
     """
     z = 2.0 * (2.0 * u - 1.0)
     az = jnp.abs(z)
     s = jnp.cbrt(az + jnp.sqrt(az * az + 1.0))  # >= 1
     mu_pos = s - 1.0 / s  # in [0, 1] for az in [0, 2]: no cancellation there (s >= 1, 1/s <= 1)
     # 1 - mu for the mirrored (forward) root from the cubic itself: mu^3 + 3 mu - 4 = (mu - 1)(mu^2 + mu + 4), so
-    # 1 - mu = (4 - 2 az) / (mu^2 + mu + 4) with 2 az = mu^3 + 3 mu: accurate as mu -> 1 (u -> 0 or 1).
-    one_minus_pos = (4.0 - 2.0 * az) / (mu_pos * mu_pos + mu_pos + 4.0)
+    # 1 - mu = (4 - 2 az) / (mu^2 + mu + 4), and 4 - 2 az = 8 min(u, 1 - u) without the rounding of 2u - 1:
+    # accurate as mu -> 1 (u -> 0 or 1).
+    one_minus_pos = 8.0 * jnp.minimum(u, 1.0 - u) / (mu_pos * mu_pos + mu_pos + 4.0)
     one_plus_pos = 1.0 + mu_pos
     fwd = z >= 0
     omc = jnp.where(fwd, one_minus_pos, one_plus_pos)

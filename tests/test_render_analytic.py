@@ -125,7 +125,8 @@ def _in_scatter_integrand(tau, o, dirs, c, intensity, sigma_t, sigma_s, g, geome
     phi = phi_a + tau * (phi_b - phi_a)
     t = delta + D * np.tan(phi)
     r = D / np.cos(phi)
-    val = (phi_b - phi_a) / D * hg_np(-np.sin(phi), g)  # cos(theta_s) = -sin(phi)
+    phase = g if callable(g) else (lambda c: hg_np(c, g))  # g: HG's g, or a float64 phase function of cos
+    val = (phi_b - phi_a) / D * phase(-np.sin(phi))  # cos(theta_s) = -sin(phi)
     if spot is not None:
         axis = np.asarray(spot[0], np.float64) / np.linalg.norm(spot[0])
         x = o + t[..., None] * dirs[:, None, :]
@@ -304,6 +305,21 @@ def test_single_scattering_point_lights(fog, stats, single_scatter_refs, equiang
                                                        batch_paths=SS_BATCH))
         stats.assert_statistically_equal(mean, se, single_scatter_refs[g],
                                          label=f"single scatter g={g} eq={equiangular}")
+
+
+def rayleigh_np(cos_theta):
+    """Rayleigh phase function in float64: 3 (1 + cos^2) / (16 pi)."""
+    return 3.0 * (1.0 + cos_theta**2) / (16.0 * np.pi)
+
+
+def test_single_scattering_rayleigh(stats):
+    """max_depth 2 in Rayleigh haze (the phase function behind the interface, sampled by its cubic), two point
+    lights, RGB fog: each pixel matches the float64 quadrature of the in-scattering integral with p = 3(1+mu^2)/16pi."""
+    ref = single_scatter_reference(SS_CAMERA, 3, SS_POINTS, SS_SIGMA_T, SS_ALBEDO, rayleigh_np)
+    haze = lambda sigma_t, albedo, g: jf.HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=jf.Rayleigh())
+    scene = single_scatter_scene(SS_CAMERA, haze, None, points_on=True, spot_on=False)
+    mean, se = stats.mean_and_se(stats.render_keys(scene, 16, seed=17, batch_paths=SS_BATCH))
+    stats.assert_statistically_equal(mean, se, ref, label="single scatter rayleigh")
 
 
 # ================================================================================ (c) spot lights

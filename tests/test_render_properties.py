@@ -167,3 +167,16 @@ def test_program_contains_only_what_the_scene_needs():
         fewer = {p: (n, cb[p]) for p, n in cs.items() if cb[p] < n}
         assert not fewer, f"adding {name} removed operations: {fewer}"
         assert sum(cb.values()) > sum(cs.values()) * 1.05, (name, sum(cs.values()), sum(cb.values()))
+
+
+def test_phase_function_code_is_compiled_only_where_used():
+    """Rayleigh sampling solves a cubic (`cbrt`): an HG scene's program has no `cbrt`, a Rayleigh scene's has."""
+    cam = dataclasses.replace(FLOOR_CAMERA, width=4, height=3).build()
+    point = jf.PointLight((-0.5, 2.0, 0.5), 5.0)
+
+    def scene(phase):
+        medium = jf.HomogeneousMedium(sigma_t=0.5, albedo=0.8, phase=phase)
+        return jf.Scene(camera=cam, shapes=(make_floor(),), lights=(point,), medium=medium, max_depth=3)
+
+    assert primitive_counts(scene(jf.HenyeyGreenstein(0.3)))["cbrt"] == 0
+    assert primitive_counts(scene(jf.Rayleigh()))["cbrt"] > 0

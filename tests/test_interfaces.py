@@ -1,0 +1,333 @@
+"""The sample / eval / pdf interfaces, one method at a time: phase functions, BSDFs, lights, the warps of
+`_sampling`, and the validation every Module does when it is built.
+
+Statistics: histogram tests compare N samples in K bins with the expected counts `N p_k` by Pearson's chi-square
+(K - 1 degrees of freedom); with fixed seeds a test fails if the statistic's upper tail probability is below 1e-4
+(an unbiased sampler fails such a test with probability 1e-4 per seed). Moments are compared with their standard
+error from the same samples (|z| <= 5).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+import jaxfog as jf
+from jaxfog import _sampling as S
+from jaxfog._math import safe_normalize
+
+N = 200_000
+P_MIN = 1e-4
+SCENES = os.path.join(os.path.dirname(__file__), "..", "data_synthetic", "scenes")
+
+
+def chi_square_pvalue(samples, edges, probs):
+    """Upper-tail p-value of Pearson's statistic for `samples` against bin probabilities `probs` on `edges`."""
+    counts, _ = np.histogram(samples, edges)
+    expected = len(samples) * np.asarray(probs, np.float64)
+    assert expected.min() > 20, "bins too thin for the chi-square approximation"
+    stat = np.sum((counts - expected) ** 2 / expected)
+    return sps.chi2.sf(stat, len(probs) - 1), stat
+
+
+def bin_probabilities(pdf_of_mu, edges, n_gl=16):
+    """Probability of each bin of mu = cos theta for a density over directions symmetric about the axis:
+    `int 2 pi pdf(mu) dmu` per bin, Gauss–Legendre in float64 on the float32 pdf."""
+    x, w = np.polynomial.legendre.leggauss(n_gl)
+    lo, hi = edges[:-1, None], edges[1:, None]
+    mu = 0.5 * (hi - lo) * x[None] + 0.5 * (hi + lo)
+    p = np.asarray(pdf_of_mu(jnp.asarray(mu, jnp.float32)), np.float64)
+    return np.sum(2.0 * np.pi * p * w[None] * 0.5 * (hi - lo), axis=1)
+
+
+PHASES = {
+    "hg-0.7": jf.HenyeyGreenstein(-0.7),
+    "hg0": jf.HenyeyGreenstein(0.0),
+    "hg0.9": jf.HenyeyGreenstein(0.9),
+    "rayleigh": jf.Rayleigh(),
+}
+
+
+def _uniforms(seed, shape):
+    return jax.random.uniform(jax.random.key(seed), shape, jnp.float32)
+
+
+# ------------------------------------------------------------------------------------------------ phase functions
+@pytest.mark.parametrize("name", PHASES)
+def test_phase_pdf_integrates_to_one_and_equals_eval(name):
+    phase = PHASES[name]
+    x, w = np.polynomial.legendre.leggauss(400)  # mu in [-1, 1]; a smooth pdf (HG 0.9 peaks at 4.5/sr)
+    omc = jnp.asarray(1.0 - x, jnp.float32)
+    pdf = np.asarray(jax.vmap(phase.pdf_polar)(omc), np.float64)
+    val = np.asarray(jax.vmap(phase.eval_polar)(omc), np.float64)
+    assert abs(np.sum(2.0 * np.pi * pdf * w) - 1.0) < 1e-5
+    if phase.sampled_exactly:
+        np.testing.assert_array_equal(pdf, val)
+
+
+@pytest.mark.parametrize("name", PHASES)
+def test_phase_sampler_follows_its_pdf(name):
+    phase = PHASES[name]
+    u = _uniforms(1, (N,))
+    polar = jax.vmap(phase.sample_polar)(u)
+    mu = np.asarray(0.5 * (polar.one_plus_cos - polar.one_minus_cos), np.float64)
+    np.testing.assert_allclose(np.asarray(polar.one_plus_cos + polar.one_minus_cos), 2.0, atol=1e-6)
+    # bins of equal probability under the pdf would be ideal; 40 equal bins in mu keep > 20 expected per bin here
+    edges = np.linspace(-1.0, 1.0, 41)
+    if name == "hg0.9":  # the forward peak: bins in 1 - mu on a log scale
+        edges = np.concatenate([[-1.0], 1.0 - np.geomspace(1.0, 1e-3, 30), [1.0]])
+    probs = bin_probabilities(lambda m: jax.vmap(phase.pdf_polar)(1.0 - m), edges)
+    assert abs(probs.sum() - 1.0) < 1e-4
+    p, stat = chi_square_pvalue(mu, edges, probs / probs.sum())
+    assert p > P_MIN, (name, stat, p)
+
+
+def test_rayleigh_moments():
+    """E[cos] = 0 and E[cos^2] = 2/5, from the pdf (quadrature, exact to 1e-6) and from the sampler (5 SE)."""
+    phase = jf.Rayleigh()
+    x, w = np.polynomial.legendre.leggauss(16)
+    p = np.asarray(jax.vmap(phase.pdf_polar)(jnp.asarray(1.0 - x, jnp.float32)), np.float64) * 2 * np.pi
+    assert abs(np.sum(p * x * w)) < 1e-6 and abs(np.sum(p * x * x * w) - 0.4) < 1e-6
+    polar = jax.vmap(phase.sample_polar)(_uniforms(2, (N,)))
+    mu = np.asarray(0.5 * (polar.one_plus_cos - polar.one_minus_cos), np.float64)
+    for m, expected in ((mu, 0.0), (mu * mu, 0.4)):
+        assert abs(m.mean() - expected) <= 5 * m.std(ddof=1) / np.sqrt(N), (m.mean(), expected)
+
+
+def test_rayleigh_sampler_is_accurate_at_the_poles():
+    """Near mu = +-1 the sampler's small half (1 - mu or 1 + mu) agrees with a float64 root of the cubic in that
+    small variable to float32 precision (the textbook `1 - (s - 1/s)` loses all its digits there).
+
+    With `e = 1 - |mu|` the cdf equation `|mu|^3 + 3 |mu| = 2 |z|` reads `e^3 - 3 e^2 + 6 e = 4 - 2 |z|`, solved by
+    Newton's method in float64."""
+    u = np.array([2.0**-24, 1e-6, 1e-3, 0.25, 0.5, 0.75, 1 - 1e-3, 1 - 2.0**-24], np.float64)
+    polar = jax.vmap(S.rayleigh_sample)(jnp.asarray(u, jnp.float32))
+    z = 2.0 * (2.0 * np.float32(u).astype(np.float64) - 1.0)
+    rhs = 4.0 - 2.0 * np.abs(z)
+    e = rhs / 6.0
+    for _ in range(30):
+        e = e - (e**3 - 3 * e**2 + 6 * e - rhs) / (3 * e**2 - 6 * e + 6)
+    small, large = e, 2.0 - e
+    omc_ref = np.where(z >= 0, small, large)
+    opc_ref = np.where(z >= 0, large, small)
+    np.testing.assert_allclose(np.asarray(polar.one_minus_cos, np.float64), omc_ref, rtol=1e-6, atol=1e-30)
+    np.testing.assert_allclose(np.asarray(polar.one_plus_cos, np.float64), opc_ref, rtol=1e-6, atol=1e-30)
+
+
+@pytest.mark.parametrize("name", PHASES)
+def test_phase_sample_direction_matches_its_polar_part(name):
+    phase = PHASES[name]
+    d = safe_normalize(jnp.array([0.3, -0.5, 0.8], jnp.float32))
+    smp = jax.vmap(lambda u: phase.sample(d, u))(_uniforms(3, (1000, 2)))
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(smp.wo), axis=-1), 1.0, atol=2e-6)
+    omc = 1.0 - np.asarray(smp.wo) @ np.asarray(d)
+    np.testing.assert_allclose(omc, np.asarray(smp.one_minus_cos), atol=2e-6)
+    np.testing.assert_allclose(np.asarray(smp.pdf), np.asarray(jax.vmap(lambda w: phase.pdf(d, w))(smp.wo)),
+                               rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(smp.weight), 1.0, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------------------- BSDFs
+def test_cosine_lobe_sampler_follows_its_pdf():
+    polar = jax.vmap(S.cosine_sample)(_uniforms(4, (N,)))
+    mu = np.asarray(0.5 * (polar.one_plus_cos - polar.one_minus_cos), np.float64)
+    edges = np.linspace(0.0, 1.0, 41)
+    edges[0] = -1e-9
+    probs = bin_probabilities(S.cosine_pdf, np.clip(edges, 0.0, 1.0))
+    assert abs(probs.sum() - 1.0) < 1e-6
+    p, stat = chi_square_pvalue(mu, edges, probs)
+    assert p > P_MIN, (stat, p)
+
+
+def test_diffuse_sample_eval_pdf_agree():
+    """weight = eval / pdf = reflectance for front-side samples; black from the back, where pdf is 0 too."""
+    bsdf = jf.Diffuse((0.2, 0.5, 0.8))
+    n = safe_normalize(jnp.array([0.1, 1.0, -0.2], jnp.float32))
+    d = safe_normalize(jnp.array([0.4, -1.0, 0.3], jnp.float32))
+    smp = jax.vmap(lambda u: bsdf.sample(d, n, u))(_uniforms(5, (1000, 3)))
+    ev = jax.vmap(lambda w: bsdf.eval(d, w, n))(smp.wo)
+    pdf = jax.vmap(lambda w: bsdf.pdf(d, w, n))(smp.wo)
+    np.testing.assert_allclose(np.asarray(smp.weight), np.broadcast_to([0.2, 0.5, 0.8], (1000, 3)), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(ev / pdf[:, None]), np.asarray(smp.weight), rtol=1e-4)
+    assert not np.any(np.asarray(smp.delta))
+    back = jax.vmap(lambda w: bsdf.eval(-d, w, n))(smp.wo)  # arriving from below the surface
+    assert np.all(np.asarray(back) == 0)
+    assert float(bsdf.pdf(d, -n, n)) == 0.0
+
+
+def test_mirror_and_glass_are_delta():
+    n = jnp.array([0.0, 1.0, 0.0], jnp.float32)
+    d = safe_normalize(jnp.array([0.6, -0.8, 0.0], jnp.float32))
+    m = jf.Mirror(0.7).sample(d, n, jnp.zeros(3))
+    np.testing.assert_allclose(np.asarray(m.wo), [0.6, 0.8, 0.0], atol=1e-6)
+    assert bool(m.delta) and float(m.pdf) == 0.0 and float(jnp.sum(jf.Mirror().eval(d, m.wo, n))) == 0.0
+    glass = jf.Glass(1.5, 1.0)
+    F = float(jf._bsdf.fresnel_dielectric(jnp.float32(0.8), jnp.float32(1.5))[0])
+    refl = glass.sample(d, n, jnp.array([0.0, 0.0, 0.5 * F]))
+    refr = glass.sample(d, n, jnp.array([0.0, 0.0, 0.5 * (1 + F)]))
+    assert not bool(refl.transmitted) and bool(refr.transmitted) and bool(refr.delta)
+    np.testing.assert_allclose(np.asarray(refl.wo), [0.6, 0.8, 0.0], atol=1e-6)
+    sin_t = float(refr.wo[0])  # Snell: sin_t = sin_i / 1.5, going down into the glass
+    assert abs(sin_t - 0.6 / 1.5) < 1e-6 and float(refr.wo[1]) < 0
+    np.testing.assert_allclose(np.asarray(refr.weight), 1.0 / 1.5**2, rtol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------------------- lights
+def test_point_and_spot_light_samples():
+    p = jnp.array([0.5, 0.0, -0.3], jnp.float32)
+    point = jf.PointLight((0.5, 2.0, -0.3), (4.0, 3.0, 2.0))
+    ls = point.sample_li(p)
+    np.testing.assert_allclose(np.asarray(ls.wi), [0, 1, 0], atol=1e-7)
+    np.testing.assert_allclose(np.asarray(ls.value), np.array([4.0, 3.0, 2.0]) / 4.0, rtol=1e-6)
+    assert float(ls.pdf) == 1.0 and float(ls.dist) == pytest.approx(2.0) and point.is_delta
+    spot = jf.SpotLight((0.0, 2.0, 0.0), (0.0, -1.0, 0.0), 10.0, cutoff_angle=30.0, beam_width=10.0)
+    for theta in (5.0, 20.0, 29.0, 31.0):
+        x = jnp.array([2.0 * np.tan(np.deg2rad(theta)), 0.0, 0.0], jnp.float32)
+        ls = spot.sample_li(x)
+        falloff = 1.0 if theta <= 10 else max(0.0, (30.0 - theta) / 20.0)
+        r2 = float(jnp.sum((x - spot.position) ** 2))
+        np.testing.assert_allclose(np.asarray(ls.value), 10.0 * falloff / r2, rtol=2e-5, atol=1e-7)
+
+
+def _rectangle_solid_angle(p, center, eu, ev):
+    """Solid angle of a rectangle seen from p (Van Oosterom & Strackee, two triangles), float64."""
+    c, eu, ev = (np.asarray(x, np.float64) for x in (center, eu, ev))
+    v = [c - 0.5 * eu - 0.5 * ev, c + 0.5 * eu - 0.5 * ev, c + 0.5 * eu + 0.5 * ev, c - 0.5 * eu + 0.5 * ev]
+    total = 0.0
+    for a, b, cc in ((v[0], v[1], v[2]), (v[0], v[2], v[3])):
+        r1, r2, r3 = a - p, b - p, cc - p
+        l1, l2, l3 = (np.linalg.norm(r) for r in (r1, r2, r3))
+        num = np.dot(r1, np.cross(r2, r3))
+        den = l1 * l2 * l3 + np.dot(r1, r2) * l3 + np.dot(r1, r3) * l2 + np.dot(r2, r3) * l1
+        total += 2.0 * np.arctan2(abs(num), den)
+    return total
+
+
+def test_area_light_pdf_is_its_closed_form_and_integrates_to_the_solid_angle():
+    """`pdf_li` at each sampled direction equals the sample's pdf (= dist^2 / (A cos)), and E[1 / pdf] over the
+    samples is the rectangle's solid angle (its standard error from the samples, |z| <= 5)."""
+    light = jf.AreaLight((0.2, 2.0, -0.1), (1.2, 0.0, 0.0), (0.0, 0.0, 0.8), 3.0)  # front face -y (down)
+    p = jnp.array([0.7, 0.4, 0.5], jnp.float32)
+    smp = jax.vmap(lambda u: light.sample_li(p, u))(_uniforms(6, (N, 2)))
+    pdf_again = jax.vmap(lambda w, t: light.pdf_li(p, w, t))(smp.wi, smp.dist)
+    np.testing.assert_allclose(np.asarray(pdf_again), np.asarray(smp.pdf), rtol=1e-5)
+    y = np.asarray(p)[None] + np.asarray(smp.dist)[:, None] * np.asarray(smp.wi)
+    cos_l = -np.asarray(smp.wi) @ np.array([0.0, -1.0, 0.0])
+    closed = np.sum((y - np.asarray(p)) ** 2, -1) / (1.2 * 0.8 * cos_l)
+    np.testing.assert_allclose(np.asarray(smp.pdf), closed, rtol=1e-4)
+    inv = 1.0 / np.asarray(smp.pdf, np.float64)
+    omega = _rectangle_solid_angle(np.asarray(p, np.float64), light.center, light.edge_u, light.edge_v)
+    assert abs(inv.mean() - omega) <= 5 * inv.std(ddof=1) / np.sqrt(N), (inv.mean(), omega)
+    behind = light.sample_li(jnp.array([0.2, 3.0, -0.1], jnp.float32), jnp.array([0.5, 0.5]))
+    assert float(behind.pdf) == 0.0 and float(jnp.sum(behind.value)) == 0.0  # one-sided
+
+
+def test_spot_lit_interval_is_the_cone():
+    """Points of random lines inside `lit_interval` are inside the cutoff cone, points outside are not."""
+    spot = jf.SpotLight((0.1, 2.0, -0.2), (0.3, -1.0, 0.2), 1.0, cutoff_angle=25.0, beam_width=10.0)
+    rng = np.random.default_rng(7)
+    o = rng.uniform(-3, 3, (500, 3)).astype(np.float32)
+    d = rng.normal(size=(500, 3)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    t0, t1 = jax.vmap(spot.lit_interval)(jnp.asarray(o), jnp.asarray(d))
+    t = np.linspace(-8, 8, 401)
+    x = o[:, None] + t[None, :, None] * d[:, None]
+    v = x - np.asarray(spot.position)
+    cosang = v @ np.asarray(spot.direction) / np.linalg.norm(v, axis=-1)
+    inside = cosang > np.cos(np.deg2rad(25.0))
+    predicted = (t[None] >= np.asarray(t0)[:, None]) & (t[None] <= np.asarray(t1)[:, None])
+    margin = np.abs(cosang - np.cos(np.deg2rad(25.0))) > 1e-4  # float32 rounding at the cone's surface
+    assert np.array_equal(inside[margin], predicted[margin])
+
+
+# ----------------------------------------------------------------------------------------------------- the warps
+def test_equiangular_sampler_follows_its_pdf():
+    c = jnp.array([0.5, 1.0, -2.0], jnp.float32)
+    o = jnp.zeros(3, jnp.float32)
+    d = jnp.array([0.0, 0.0, -1.0], jnp.float32)
+    eq = S.equiangular_setup(c, o, d, jnp.float32(0.5), jnp.float32(6.0))
+    t = np.asarray(jax.vmap(lambda u: S.equiangular_sample(eq, u, jnp.float32(6.0)))(_uniforms(8, (N,))))
+    edges = np.linspace(0.5, 6.0, 41)
+    x, w = np.polynomial.legendre.leggauss(16)
+    mid = 0.5 * (edges[1:] + edges[:-1])[:, None] + 0.5 * np.diff(edges)[:, None] * x[None]
+    p = np.asarray(jax.vmap(lambda tt: S.equiangular_pdf(eq, tt))(jnp.asarray(mid.reshape(-1), jnp.float32)))
+    probs = np.sum(p.reshape(mid.shape) * w[None], axis=1) * 0.5 * np.diff(edges)
+    assert abs(probs.sum() - 1.0) < 1e-5
+    pv, stat = chi_square_pvalue(t, edges, probs / probs.sum())
+    assert pv > P_MIN, (stat, pv)
+
+
+def test_truncated_exponential_pdf_integrates_to_one():
+    x, w = np.polynomial.legendre.leggauss(64)
+    for rate, s in ((0.5, 3.0), (4.0, 2.0), (1e-4, 10.0)):
+        t = jnp.asarray(0.5 * s * (x + 1), jnp.float32)
+        p = np.asarray(S.truncated_exponential_pdf(t, jnp.float32(rate), jnp.float32(s)), np.float64)
+        assert abs(np.sum(p * w) * 0.5 * s - 1.0) < 1e-5, (rate, s)
+
+
+# ------------------------------------------------------------------------------------------------------ validation
+@pytest.mark.parametrize("build, message", [
+    (lambda: jf.HenyeyGreenstein(1.0), r"HenyeyGreenstein\.g = 1\.0 .* valid range \(-1, 1\)"),
+    (lambda: jf.HenyeyGreenstein(0.99999999), r"HenyeyGreenstein\.g = 1\.0 \(as float32\)"),
+    (lambda: jf.HenyeyGreenstein(-1.5), r"HenyeyGreenstein\.g = -1\.5"),
+    (lambda: jf.HomogeneousMedium(sigma_t=-1.0, albedo=0.5, phase=jf.Rayleigh()), r"HomogeneousMedium\.sigma_t"),
+    (lambda: jf.HomogeneousMedium(sigma_t=1e39, albedo=0.5, phase=jf.Rayleigh()), r"HomogeneousMedium\.sigma_t"),
+    (lambda: jf.HomogeneousMedium(sigma_t=1.0, albedo=(0.5, 2.0, 0.5), phase=jf.Rayleigh()),
+     r"HomogeneousMedium\.albedo = \[0\.5, 2\.0, 0\.5\] .* \[0, 1\]"),
+    (lambda: jf.SpotLight((0, 0, 0), (0, -1, 0), 1.0, cutoff_angle=20.0, beam_width=25.0), r"beam_width"),
+    (lambda: jf.SpotLight((0, 0, 0), (0, 0, 0), 1.0), r"SpotLight\.direction"),
+    (lambda: jf.PointLight((0, 0, 0), -1.0), r"PointLight\.intensity"),
+    (lambda: jf.Diffuse(1.5), r"Diffuse\.reflectance"),
+    (lambda: jf.Glass(int_ior=0.0), r"Glass\.int_ior"),
+    (lambda: jf.SamplingOptions(estimator="nope"), r"SamplingOptions\.estimator"),
+    (lambda: jf.SamplingOptions(light_lobe=1.0), r"SamplingOptions\.light_lobe"),
+])
+def test_modules_refuse_bad_values_when_built(build, message):
+    with pytest.raises(ValueError, match=message):
+        build()
+
+
+def test_replace_medium_validates_and_traced_values_pass():
+    scene = jf.load_scene(os.path.join(SCENES, "spot_fog.json")).scene
+    for bad in ({"g": 1.0}, {"g": 1.5}, {"sigma_t": -1.0}, {"albedo": 2.0}):
+        with pytest.raises(ValueError):
+            scene.replace_medium(**bad)
+    with pytest.raises(ValueError, match="unknown parameter"):
+        scene.replace_medium(sigma=1.0)
+    # inside jit the values are traced: nothing to check, nothing raised
+    g = jax.jit(lambda x: scene.replace_medium(g=x).medium.phase.g)(jnp.float32(0.3))
+    assert float(g) == pytest.approx(0.3)
+
+
+def test_scene_file_defaults_are_the_modules_defaults():
+    """A scene file that leaves out every optional key builds the same Modules as Python code that leaves out the
+    same arguments (spot cutoff and beam width, mirror reflectance, glass IORs, medium extent)."""
+    data = json.load(open(os.path.join(SCENES, "mirror_glass.json")))
+    data["lights"] = [{"type": "spot", "position": [0, 2, 0], "direction": [0, -1, 0], "intensity": 5.0}]
+    data["shapes"] = [{"type": "sphere", "center": [0, 0, 0], "radius": 1, "bsdf": {"type": "mirror"}},
+                      {"type": "sphere", "center": [2, 0, 0], "radius": 1, "bsdf": {"type": "glass"}}]
+    data["medium"] = {"sigma_t": 0.5, "albedo": 0.9, "g": 0.3}
+    scene = jf._scene_io.scene_from_dict(data).scene
+    expected = (jf.SpotLight((0, 2, 0), (0, -1, 0), 5.0), jf.Mirror(), jf.Glass(),
+                jf.HomogeneousMedium(sigma_t=0.5, albedo=0.9, phase=jf.HenyeyGreenstein(0.3)))
+    got = (scene.lights[0], scene.shapes[0].bsdf, scene.shapes[1].bsdf, scene.medium)
+    for a, b in zip(got, expected):
+        la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
+        assert jax.tree.structure(a) == jax.tree.structure(b), (a, b)
+        for x, y in zip(la, lb):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_rayleigh_in_a_scene_file():
+    data = json.load(open(os.path.join(SCENES, "spot_fog.json")))
+    data["medium"] = {"sigma_t": 0.5, "albedo": 0.9, "phase": {"type": "rayleigh"}}
+    assert isinstance(jf._scene_io.scene_from_dict(data).scene.medium.phase, jf.Rayleigh)
+    data["medium"]["g"] = 0.3
+    with pytest.raises(jf.SceneError, match="both g and phase"):
+        jf._scene_io.scene_from_dict(data)
