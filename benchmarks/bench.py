@@ -22,14 +22,15 @@ Three studies, each printed as a table, written to `DIR/bench.json` and plotted 
    the same at every depth, and each column is hashed on its own (`jaxfog._random.uniforms`: a function of the key,
    the row and the column, not of the column count), so columns below `n_iterations * n_dims` are the same whatever
    `max_depth` is, as are the pixel jitter and the batching (an image does not depend on the batch size). So a
-   depth-`d` path is exactly the start of the deep one (its first `n_iterations` bounces), and the difference of two images has only the
-   noise of the longer paths.
-   Each depth renders `depth_spp / depth_layers_per_call` independent images of `depth_layers_per_call` spp (keys
+   depth-`d` path is exactly the start of the deep one (its first `n_iterations` bounces), and the difference of two
+   images has only the noise of the longer paths (`tests/test_bench.py` checks the layout and the columns). Each
+   depth renders `depth_spp / depth_layers_per_call` independent images of `depth_layers_per_call` spp (keys
    `fold_in(key, c)`, the same for every depth). Reported: the relative mean-image difference (with its standard
    error over those images), the per-pixel RMSE beyond noise (`sqrt(mean(Delta_A * Delta_B))` over two independent
-   halves of the images), and the time per spp. `pick_depth` picks
-   the cheapest depth for a requested relative error from that table.
-3. **Mitsuba 3 side by side** (optional extra `compare`; `benchmarks.bench_mitsuba`, scene by `jaxfog.to_mitsuba`): the same scene rendered in Mitsuba's
+   halves of the images), and the time per spp. `pick_depth` picks the cheapest depth for a requested relative
+   error from that table.
+3. **Mitsuba 3 side by side** (optional extra `compare`; `benchmarks.bench_mitsuba`, the scene from
+   `jaxfog.to_mitsuba`): the same scene rendered in Mitsuba's
    `volpath` (LLVM backend) in a subprocess in the same run; the means (image and 4 x 4 regions) are compared within
    their standard errors, and the time-to-equal-error ratio is printed: jaxfog's time (default strategy) to reach
    Mitsuba's 64-spp RMSE against the shared reference, over Mitsuba's time for 64 spp, measured rather than
