@@ -4,7 +4,8 @@ Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror
 `SpotLight`, `AreaLight`, `HenyeyGreenstein`, `Rayleigh`, `HomogeneousMedium`, `Scene`) and their interfaces
 (`AbstractBSDF`, `AbstractLobeBSDF`, `AbstractLight`, `AbstractPointLikeLight`, `AbstractPhaseFunction`,
 `AbstractMedium`), `render` with its `SamplingOptions`, scene files
-(`load_scene`, `SceneError`) and image I/O (`write_exr`, `read_exr`, `write_png`).
+(`load_scene`, `SceneError`), image I/O (`write_exr`, `read_exr`, `write_png`) and the same scene in Mitsuba 3
+(`to_mitsuba`, and `render_mitsuba` with the optional extra `compare`).
 """
 
 from ._bsdf import (
@@ -26,6 +27,7 @@ from ._lights import (
     SpotLight as SpotLight,
 )
 from ._medium import AbstractMedium as AbstractMedium, HomogeneousMedium as HomogeneousMedium
+from ._mitsuba import render_mitsuba as render_mitsuba, to_mitsuba as to_mitsuba
 from ._phase import (
     AbstractPhaseFunction as AbstractPhaseFunction,
     HenyeyGreenstein as HenyeyGreenstein,

@@ -1,7 +1,8 @@
 """The `jaxfog` command line: `jaxfog render SCENE.json -o OUT.exr [...]` (also `python -m jaxfog`).
 
 Subcommands are entries in `COMMANDS`: a name, a one-line help, `configure(parser)` adding its arguments and
-`run(args) -> exit code`: `render` and `bench` (no `fit`). Expected failures (an invalid scene, a bad argument,
+`run(args) -> exit code`: `render` (the fit is `python -m fitting.fit`; the benchmarks, not installed, are
+`python -m benchmarks.bench` etc. from a checkout). Expected failures (an invalid scene, a bad argument,
 an unwritable output) print one line `jaxfog: error: ...` and exit non-zero, without a traceback.
 """
 
@@ -156,10 +157,6 @@ def _version() -> str:
 COMMANDS: list[Command] = [
     Command("render", "render a scene file to an OpenEXR (and optionally a PNG preview)",
             _configure_render, _run_render),
-    Command("bench", "benchmark: error against time per sampling strategy, bias against max_depth, Mitsuba 3 "
-            "side by side (jaxfog.bench)",
-            lambda p: __import__("jaxfog.bench", fromlist=["configure"]).configure(p),
-            lambda args: __import__("jaxfog.bench", fromlist=["run"]).run(args)),
 ]
 """The subcommands, in `--help` order. Add `Command(name, help, configure, run)` entries for new ones."""
 

@@ -3,7 +3,7 @@
 XLA runs one render's vectorized program on a single core of the CPU (measured: CPU time = wall time,
 docs/results/bench/PROFILE.md). `render` splits each batch of sample layers across `jax.local_devices()` when there is more
 than one; on a CPU machine there is one device unless JAX is told otherwise before it starts. The command-line entry
-points (`jaxfog render`, `jaxfog bench`, `python -m fitting.fit`, ...) call `use_cpu_cores()` first; a Python user
+points (`jaxfog render`, `python -m fitting.fit`, `python -m benchmarks.bench`, ...) call `use_cpu_cores()` first; a Python user
 calls it right after `import jaxfog`, before any JAX computation (or sets `jax_num_cpu_devices` themselves).
 """
 

@@ -29,7 +29,7 @@ DEFAULT_CHUNK_PATHS = 1024
 """Paths traced together in one vectorized pass (a sample layer is traced in chunks of this many pixels, one after
 the other). A speed knob only: each path's random numbers do not depend on it. Measured on a 2-core CPU (XLA):
 1024 is ~1.4x faster per sample than a whole 128x128 layer at once; 2048 and 4096 are slower, 256 and 512 in
-between (docs/results/bench/PROFILE.md; re-measure with `python -m jaxfog.bench_profile` on other hardware)."""
+between (docs/results/bench/PROFILE.md; re-measure with `python -m benchmarks.bench_profile` on other hardware)."""
 
 
 def layers_per_batch(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PATHS) -> int:

@@ -1,4 +1,4 @@
-"""The benchmark's statistics and plumbing (jaxfog.bench, jaxfog.bench_mitsuba), with a fake renderer and a fake clock:
+"""The benchmark's statistics and plumbing (benchmarks.bench, benchmarks.bench_mitsuba), with a fake renderer and a fake clock:
 no test here times anything real. The end-to-end `--quick` run is marked slow (it compiles several programs)."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxfog import bench
-from jaxfog.bench_mitsuba import rectangle_matrix
+from benchmarks import bench
+from jaxfog._mitsuba import rectangle_matrix
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -178,6 +178,25 @@ def test_mitsuba_compare_measures_jaxfog_at_mitsubas_error(monkeypatch, tmp_path
     assert "HEADLINE, measured" in text and f"at {m['median_image']['spp']} spp" in text
 
 
+def test_depth_study_gets_common_random_numbers_from_render():
+    """The depth study renders each depth with `jaxfog.render` and the same keys: the bounce layout does not depend
+    on `max_depth`, and the uniform table's columns do not depend on how many there are, so a shorter path draws the
+    first columns of a longer one's numbers."""
+    import jax
+
+    from jaxfog._integrator import layout, n_iterations
+    from jaxfog._random import uniforms
+
+    scenes = {d: bench.load("spot_fog", 4, [f"integrator.max_depth={d}"]).scene for d in (2, 3, 8)}
+    assert len({layout(s) for s in scenes.values()}) == 1
+    K = layout(scenes[2]).n_dims
+    key = jax.random.key(7)
+    deep = np.asarray(uniforms(key, 16, n_iterations(scenes[8]) * K, 5))
+    for d in (2, 3):
+        cols = n_iterations(scenes[d]) * K
+        np.testing.assert_array_equal(np.asarray(uniforms(key, 16, cols, 5)), deep[:, :cols])
+
+
 # ----------------------------------------------------------------------------------------------------- pick_depth
 def _row(depth, mean_bias, se, pixel, t, ref=False):
     return {"depth": depth, "rel_mean_bias": mean_bias, "rel_mean_bias_se": se, "rel_pixel_bias": pixel,
@@ -222,40 +241,24 @@ def test_missing_mitsuba_is_reported_as_skipped(tmp_path):
     assert "Mitsuba 3: skipped" in text
 
 
-def test_mitsuba_loads_every_shipped_scene():
-    mi = pytest.importorskip("mitsuba")
-    from jaxfog import load_scene
-    from jaxfog.bench_mitsuba import import_mitsuba, scene_dict
-
-    mi, reason = import_mitsuba()
-    if mi is None:
-        pytest.skip(reason)
-    for path in sorted((REPO / "data_synthetic" / "scenes").glob("*.json")):
-        data = load_scene(path, ["camera.width=8", "camera.height=8"]).data
-        scene = mi.load_dict(scene_dict(data, mi))
-        assert len(scene.emitters()) == len(data["lights"]), path.name
-        assert [int(x) for x in scene.sensors()[0].film().size()] == [8, 8]
-
-
 # ---------------------------------------------------------------------------------------------------------- CLI
-def test_cli_has_the_bench_command_and_validates_levels():
-    from jaxfog._cli import build_parser
-
-    args = build_parser().parse_args(["bench", "--quick", "--levels", "4", "6"])
+def test_bench_arguments_validate_levels():
+    build_parser = bench.build_parser  # `python -m benchmarks.bench` (no longer a `jaxfog` subcommand)
+    args = build_parser().parse_args(["--quick", "--levels", "4", "6"])
     with pytest.raises(ValueError, match="multiples"):
         bench.config_from_args(args)
-    args = build_parser().parse_args(["bench", "--quick", "--scenes", "no_such_scene"])
+    args = build_parser().parse_args(["--quick", "--scenes", "no_such_scene"])
     with pytest.raises(ValueError, match="no scene"):
         bench.config_from_args(args)
-    cfg = bench.config_from_args(build_parser().parse_args(["bench", "--quick", "--depth-ref", "6"]))
+    cfg = bench.config_from_args(build_parser().parse_args(["--quick", "--depth-ref", "6"]))
     assert cfg.depth_refs == (6, 6, 6) and cfg.size == 16
 
 
 @pytest.mark.slow
 def test_quick_run_end_to_end(tmp_path):
-    """`python -m jaxfog.bench --quick` (minutes: it compiles one program per strategy and depth)."""
+    """`python -m benchmarks.bench --quick` (minutes: it compiles one program per strategy and depth)."""
     out = tmp_path / "b"
-    p = subprocess.run([sys.executable, "-m", "jaxfog.bench", "--quick", "--out", str(out), "--depths", "2",
+    p = subprocess.run([sys.executable, "-m", "benchmarks.bench", "--quick", "--out", str(out), "--depths", "2",
                         "--depth-ref", "3", "--depth-scenes", "spot_fog"], capture_output=True, text=True, cwd=REPO)
     assert p.returncode == 0, p.stderr[-2000:]
     res = json.loads((out / "bench.json").read_text())

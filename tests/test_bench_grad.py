@@ -1,4 +1,4 @@
-"""The gradient benchmark's statistics (jaxfog.bench_grad) on synthetic numbers with known answers; the end-to-end
+"""The gradient benchmark's statistics (benchmarks.bench_grad) on synthetic numbers with known answers; the end-to-end
 `--quick` run (a few minutes: it compiles several programs) is marked slow."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxfog import bench_grad
+from benchmarks import bench_grad
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -56,7 +56,7 @@ def test_choose_default_takes_the_smallest_geometric_mean_and_rejects_infinite()
 @pytest.mark.slow
 def test_quick_run_writes_json_and_plot(tmp_path):
     out = tmp_path / "bg"
-    r = subprocess.run([sys.executable, "-m", "jaxfog.bench_grad", "--quick", "--out", str(out)], cwd=REPO,
+    r = subprocess.run([sys.executable, "-m", "benchmarks.bench_grad", "--quick", "--out", str(out)], cwd=REPO,
                        capture_output=True, text=True, timeout=1800)
     assert r.returncode == 0, r.stderr[-2000:]
     assert (out / "bench_grad.json").exists() and (out / "grad_rmse_vs_time.png").exists()

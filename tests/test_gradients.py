@@ -26,7 +26,7 @@ What is tested, and the statistics:
 - **"reparam" unbiased without edges**: on a scene where nothing is discontinuous in the moving sample positions (a
   floor 2 km wide lit by a spot whose falloff ramps continuously to 0 at the cutoff, no occluder), the mean over keys
   of the reparam derivatives equals the detached ones within |z| <= 5. On spot_fog and backlit it is biased (sphere
-  silhouette, shadow, floor edge: the benchmark `jaxfog.bench_grad` measures how much).
+  silhouette, shadow, floor edge: the benchmark `benchmarks.bench_grad` measures how much).
 
 Compiled at XLA optimisation level 0 (compile time dominates these small renders).
 """

@@ -1,6 +1,6 @@
 """Where the forward renderer's time goes on the headline scene (issue 5).
 
-    python -m jaxfog.bench_profile [--quick] [--out DIR] [--scene PATH] [--spp N] [--reps N]
+    python -m benchmarks.bench_profile [--quick] [--out DIR] [--scene PATH] [--spp N] [--reps N]
 
 Times `jaxfog.render(scene, key, spp)` after compiling (the first call of each configuration, compile included, is
 reported apart) for: (a) `batch_paths` (paths per compiled call); (b) `chunk_paths` (paths traced together in one
@@ -11,15 +11,13 @@ default of the command-line tools), the same render on one device.
 
 The machine may be shared, so configurations are interleaved (A, B, C, A, B, C, ...) and medians are compared as
 ratios to the default inside one run; never compare absolute times across runs. Writes `profile.json` to `--out`
-(default `docs/results/bench/profile`) and prints a table (ms per spp = one sample of every pixel of the whole image).
+(default `docs/results/bench/profile` in the repository) and prints a table (ms per spp = one sample of every pixel of the whole image).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -28,11 +26,13 @@ import jax
 import jax.numpy as jnp
 
 import jaxfog as jf
+from benchmarks.common import REPO, machine_info, scene_path, write_json
 from jaxfog import _render
 from jaxfog._integrator import n_dims, n_iterations
 from jaxfog._random import uniforms
 
-SCENE = "data_synthetic/scenes/spot_fog.json"
+SCENE = "spot_fog"
+OUT = REPO / "docs" / "results" / "bench" / "profile"
 
 
 def _configs(quick: bool):
@@ -77,19 +77,20 @@ def _rng_fn(scene, spp):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="few configurations, 4 spp, 2 repetitions (a smoke test)")
-    ap.add_argument("--out", default="docs/results/bench/profile", help="output folder (default docs/results/bench/profile)")
-    ap.add_argument("--scene", default=SCENE)
+    ap.add_argument("--out", default=str(OUT), help="output folder (default docs/results/bench/profile in the repository)")
+    ap.add_argument("--scene", default=SCENE, help="a shipped scene's name or a .json path (default spot_fog)")
     ap.add_argument("--spp", type=int, default=None, help="samples per pixel per timing (default 16; quick 4)")
     ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; quick 2)")
     args = ap.parse_args(argv)
     jf.use_cpu_cores()  # every CPU core a device, as the command-line entry points do (a no-op once JAX has started)
+    machine = machine_info()
     spp = args.spp or (4 if args.quick else 16)
     reps = args.reps or (2 if args.quick else 3)
     key = jax.random.key(0)
 
     rows = []
     for group, name, overrides, kw in _configs(args.quick):
-        scene = jf.load_scene(args.scene, overrides=overrides).scene
+        scene = jf.load_scene(scene_path(args.scene), overrides=overrides).scene
         rows.append({"group": group, "name": name, "overrides": overrides, "kwargs": kw, "scene": scene})
     cam = rows[0]["scene"].camera
     n_pix = cam.width * cam.height
@@ -147,10 +148,9 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     meta = {"scene": args.scene, "spp_per_timing": spp, "reps": reps, "quick": args.quick,
             "default_batch_paths": _render.DEFAULT_BATCH_PATHS, "default_chunk_paths": _render.DEFAULT_CHUNK_PATHS,
-            "jax": jax.__version__, "backend": jax.default_backend(), "cpu_count": os.cpu_count(),
-            "load_average_at_end": os.getloadavg(), "platform": platform.platform(),
+            "machine": {**machine, "loadavg_end": list(os.getloadavg())},
             "note": "medians of interleaved repetitions; ratios are to the 'default' row of this run only"}
-    (out / "profile.json").write_text(json.dumps({"meta": meta, "rows": out_rows}, indent=1))
+    write_json(out / "profile.json", {"meta": meta, "rows": out_rows})
     print(f"wrote {out / 'profile.json'}")
     return 0
 

@@ -1,4 +1,4 @@
-"""Gradient benchmark: `python -m jaxfog.bench_grad [--quick] [--out DIR]`.
+"""Gradient benchmark: `python -m benchmarks.bench_grad [--quick] [--out DIR]` (from the repository root).
 
 Three parts, printed as tables and written to `DIR/bench_grad.json` (plot: `DIR/grad_rmse_vs_time.png`):
 
@@ -26,7 +26,8 @@ Three parts, printed as tables and written to `DIR/bench_grad.json` (plot: `DIR/
    d(mean pixel)/d sigma_t, d g, d albedo with the default estimator, mean and standard error over `note_keys` keys of
    `note_spp` spp each.
 
-Timings are wall-clock on a shared 2-core machine (the load average is recorded); compare ratios within one run.
+Timings are wall-clock on whatever else the machine is running (the load average is recorded); compare ratios within
+one run.
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -44,7 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-SCENE_DIR = Path(__file__).resolve().parent.parent / "data_synthetic" / "scenes"
+from benchmarks.common import REPO, block_means, json_default, load, machine_info, memory_dict, subprocess_env, write_json
+
 PARAMS = ("sigma_t", "g", "albedo")
 
 ESTIMATORS: dict[str, dict] = {
@@ -93,12 +94,9 @@ QUICK = Config(size=16, max_depth=4, chunk_spp=2, levels=(2, 8), reps=3, ref_chu
 
 
 # ====================================================================================================== helpers
-def load(name: str, size: int, max_depth: int):
-    import jaxfog as jf
-
-    path = SCENE_DIR / f"{name}.json"
-    return jf.load_scene(path, overrides=[f"camera.width={size}", f"camera.height={size}",
-                                          f"integrator.max_depth={max_depth}"]).scene
+def load_scene(name: str, size: int, max_depth: int):
+    """The shipped scene `name` at `size x size` pixels and `max_depth`, as a `Scene`."""
+    return load(name, size, [f"integrator.max_depth={max_depth}"]).scene
 
 
 def theta0(scene):
@@ -111,15 +109,9 @@ def with_theta(scene, theta):
     return scene.replace_medium(sigma_t=theta[0], g=theta[1], albedo=theta[2])
 
 
-def block_means(image, n: int):
-    """`(n, n)` means of the image (all channels) over an n x n grid of blocks."""
-    H, W, _ = image.shape
-    return image.mean(-1).reshape(n, H // n, n, W // n).mean(axis=(1, 3))
-
-
 def gradient_fn(scene, spp: int, options: dict, n_blocks: int):
     """Jitted `(theta (3,), key) -> (d mean image / d theta (3,), d block means / d theta (3, n, n))`, forward mode,
-    with every sample of the `spp` in one compiled call."""
+    with every sample of the `spp` in one compiled call (`block_means` traces on the JAX image)."""
     import jax
     import jax.numpy as jnp
 
@@ -127,17 +119,18 @@ def gradient_fn(scene, spp: int, options: dict, n_blocks: int):
 
     opts = dict(options)
     ref = opts.pop("ref", None)
+    sampling = jf.SamplingOptions(**opts)
     cam = scene.camera
 
     def f(theta, key):
-        kwargs = dict(opts)
+        proposal = None
         if ref is not None:
             th = jax.lax.stop_gradient(theta)
-            kwargs["proposal"] = jf.HomogeneousMedium(sigma_t=th[0] * ref[0], albedo=1.0,
-                                                      phase=jf.HenyeyGreenstein(th[1] + ref[1]))
+            proposal = jf.HomogeneousMedium(sigma_t=th[0] * ref[0], albedo=1.0, phase=jf.HenyeyGreenstein(th[1] + ref[1]))
 
         def reductions(t):
-            img = jf.render(with_theta(scene, t), key, spp, batch_paths=cam.width * cam.height * spp, **kwargs)
+            img = jf.render(with_theta(scene, t), key, spp, sampling=sampling, proposal=proposal,
+                            batch_paths=cam.width * cam.height * spp)
             return jnp.mean(img), block_means(img, n_blocks)
 
         _, (d_mean, d_blocks) = jax.vmap(lambda v: jax.jvp(reductions, (theta,), (v,)))(jnp.eye(3))
@@ -253,7 +246,7 @@ def error_study(cfg: Config, log=print) -> dict:
     out = {}
     for name in cfg.scenes:
         log(f"[error] {name} ({cfg.size} x {cfg.size}, max_depth {cfg.max_depth})")
-        scene = load(name, cfg.size, cfg.max_depth)
+        scene = load_scene(name, cfg.size, cfg.max_depth)
         ref = reference_gradient(scene, cfg, log=log)
         res = {"reference": ref, "estimators": {}}
         for est in cfg.estimators:
@@ -269,14 +262,14 @@ def error_study(cfg: Config, log=print) -> dict:
 # ======================================================================================== 2. primal / fwd / rev
 def _mode_child(mode: str, size: int, spp: int, max_depth: int, runs: int) -> dict:
     """Runs in a fresh subprocess: compile and time one mode; memory from XLA and from the process's peak RSS."""
-    from .bench import max_rss_mib
+    from jaxfog._measure import max_rss_mib
 
     import jax
     import jax.numpy as jnp
 
     import jaxfog as jf
 
-    scene = load("spot_fog", size, max_depth)
+    scene = load_scene("spot_fog", size, max_depth)
     theta = jnp.asarray(theta0(scene))
     key = jax.random.key(0)
 
@@ -300,10 +293,7 @@ def _mode_child(mode: str, size: int, spp: int, max_depth: int, runs: int) -> di
         t0 = time.perf_counter()
         jax.block_until_ready(compiled(theta))
         times.append(time.perf_counter() - t0)
-    mib = 1.0 / (1 << 20)
-    xla = {"argument_mib": ma.argument_size_in_bytes * mib, "output_mib": ma.output_size_in_bytes * mib,
-           "temp_mib": ma.temp_size_in_bytes * mib,
-           "total_mib": (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) * mib}
+    xla = memory_dict(ma)
     rss = max_rss_mib()
     return {"mode": mode, "compile_s": t_compile, "run_s": float(np.median(times)), "run_all_s": times,
             "xla": xla, "rss_before_compile_mib": rss0, "rss_after_compile_mib": rss_compiled, "rss_peak_mib": rss,
@@ -313,10 +303,10 @@ def _mode_child(mode: str, size: int, spp: int, max_depth: int, runs: int) -> di
 def mode_study(cfg: Config, log=print) -> dict:
     out = {}
     for mode in cfg.modes:
-        cmd = [sys.executable, "-m", "jaxfog.bench_grad", "--_mode", mode, "--_mode-args",
+        cmd = [sys.executable, "-m", "benchmarks.bench_grad", "--_mode", mode, "--_mode-args",
                json.dumps([cfg.mode_size, cfg.mode_spp, cfg.mode_depth, cfg.mode_runs])]
         log(f"[modes] {mode} ({cfg.mode_size} x {cfg.mode_size}, {cfg.mode_spp} spp) in a subprocess")
-        proc = subprocess.run(cmd, capture_output=True, text=True)
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env())
         if proc.returncode != 0:
             out[mode] = {"error": proc.stderr[-2000:]}
             log(f"  failed: {proc.stderr[-500:]}")
@@ -332,7 +322,7 @@ def mode_study(cfg: Config, log=print) -> dict:
 def note_study(cfg: Config, log=print) -> dict:
     import jax.numpy as jnp
 
-    scene = load("spot_fog", cfg.note_size, cfg.note_depth)
+    scene = load_scene("spot_fog", cfg.note_size, cfg.note_depth)
     theta = jnp.asarray(theta0(scene))
     fn = gradient_fn(scene, cfg.note_spp, ESTIMATORS["detached"], 4)
     compiled, t_compile = _compile(fn, theta, _key(cfg.seed + 2, 0))
@@ -472,18 +462,10 @@ def plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
-from .bench import _json_default  # noqa: E402  (numpy scalars and arrays to JSON, shared with the image benchmark)
-
-
 def run_benchmark(cfg: Config, out: Path, plots: bool = True, log=print) -> dict:
-    import jax
-
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    result = {"config": asdict(cfg),
-              "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                          "jax": jax.__version__, "cpu_count": os.cpu_count(),
-                          "loadavg_start": list(os.getloadavg())}}
+    result = {"config": asdict(cfg), "machine": machine_info()}
     if "error" in cfg.parts:
         result["error"] = error_study(cfg, log=log)
         result["default_choice"] = choose_default(result["error"])
@@ -493,28 +475,29 @@ def run_benchmark(cfg: Config, out: Path, plots: bool = True, log=print) -> dict
         result["note"] = note_study(cfg, log=log)
     result["machine"]["loadavg_end"] = list(os.getloadavg())
     result["total_wall_s"] = time.perf_counter() - t0
-    (out / "bench_grad.json").write_text(json.dumps(result, indent=1, default=_json_default))
+    write_json(out / "bench_grad.json", result)
     if plots and "error" in result:
         plot(result, out / "grad_rmse_vs_time.png")
     return result
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m jaxfog.bench_grad", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_grad", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="a small smoke run (a few minutes)")
-    p.add_argument("--out", default="bench_grad_out", metavar="DIR", help="output directory (JSON, PNG)")
+    p.add_argument("--out", default=str(REPO / "bench_grad_out"), metavar="DIR",
+                   help="output directory (JSON, PNG; default: bench_grad_out in the repository root)")
     p.add_argument("--parts", nargs="+", choices=("error", "modes", "note"), help="parts to run (default all)")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("--_mode", help=argparse.SUPPRESS)
     p.add_argument("--_mode-args", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    from jaxfog._devices import use_cpu_cores
+    from jaxfog import use_cpu_cores
 
     use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     if args._mode:
         size, spp, depth, runs = json.loads(args._mode_args)
-        print(json.dumps(_mode_child(args._mode, size, spp, depth, runs), default=_json_default))
+        print(json.dumps(_mode_child(args._mode, size, spp, depth, runs), default=json_default))
         return 0
     cfg = QUICK if args.quick else FULL
     if args.parts:

@@ -1,4 +1,4 @@
-"""Speed against error: `python -m jaxfog.bench [--quick] [--out DIR] [--scenes ...]` (also `jaxfog bench`).
+"""Speed against error: `python -m benchmarks.bench [--quick] [--out DIR] [--scenes ...]` (from the repository root).
 
 Three studies, each printed as a table, written to `DIR/bench.json` and plotted as PNG:
 
@@ -15,13 +15,22 @@ Three studies, each printed as a table, written to `DIR/bench.json` and plotted 
    final RMSE of the scene's strategies) as a ratio to the default's, and the variance reduction of equiangular
    sampling (MSE ratio at equal spp and at equal time).
 2. **Depth against bias** (`depth_bias.png`). For thin, default and dense fog, the bias of `max_depth` 2, 3, 4, 8, 16
-   (and 32) against a deep reference (64), with common random numbers: every depth traces the same paths (bounce `i`
-   of sample `k` draws its numbers from `fold_in(fold_in(key, k), i)`), so a depth-`d` path is exactly the first
-   `d - 1` segments of the deep one and the difference of two images has only the noise of the longer paths.
-   Reported: the relative mean-image difference (with its standard error over samples), the per-pixel RMSE beyond
-   noise (`sqrt(mean(Delta_A * Delta_B))` over two independent halves), and the time per spp. `pick_depth` picks
-   the cheapest depth for a requested relative error from that table.
-3. **Mitsuba 3 side by side** (optional extra `compare`; `jaxfog.bench_mitsuba`): the same scene rendered in Mitsuba's
+   (and 32) against a deep reference (64), with common random numbers: every depth is `jaxfog.render` of the same
+   scene with the same keys, and `render` traces the same paths at every depth. Sample `k` of a pixel draws its
+   numbers from the table `uniforms(k_path, ..., n_iterations * n_dims)` of `fold_in(key, k)`, bounce `i`
+   dimension `j` from column `i * n_dims + j`; `n_dims` (`jaxfog._integrator.layout`) depends only on the lights,
+   the same at every depth, and each column is hashed on its own (`jaxfog._random.uniforms`: a function of the key,
+   the row and the column, not of the column count), so columns below `n_iterations * n_dims` are the same whatever
+   `max_depth` is, as are the pixel jitter and the batching (an image does not depend on the batch size). So a
+   depth-`d` path is exactly the start of the deep one (its first `n_iterations` bounces), and the difference of two
+   images has only the noise of the longer paths (`tests/test_bench.py` checks the layout and the columns). Each
+   depth renders `depth_spp / depth_layers_per_call` independent images of `depth_layers_per_call` spp (keys
+   `fold_in(key, c)`, the same for every depth). Reported: the relative mean-image difference (with its standard
+   error over those images), the per-pixel RMSE beyond noise (`sqrt(mean(Delta_A * Delta_B))` over two independent
+   halves of the images), and the time per spp. `pick_depth` picks the cheapest depth for a requested relative
+   error from that table.
+3. **Mitsuba 3 side by side** (optional extra `compare`; `benchmarks.bench_mitsuba`, the scene from
+   `jaxfog.to_mitsuba`): the same scene rendered in Mitsuba's
    `volpath` (LLVM backend) in a subprocess in the same run; the means (image and 4 x 4 regions) are compared within
    their standard errors, and the time-to-equal-error ratio is printed: jaxfog's time (default strategy) to reach
    Mitsuba's 64-spp RMSE against the shared reference, over Mitsuba's time for 64 spp, measured rather than
@@ -49,7 +58,6 @@ import hashlib
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -58,6 +66,18 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
+from benchmarks.common import (
+    REPO,
+    block_means,
+    load,
+    machine_info,
+    memory_dict,
+    save_npz,
+    scene_path,
+    subprocess_env,
+    write_json,
+)
 
 STRATEGIES: dict[str, dict] = {
     "free_flight": dict(equiangular=False, light_lobe=0.0, distance_mix=0.0),
@@ -71,7 +91,6 @@ flight); + the light-angle direction lobe (30%); + the equiangular/free-flight m
 is `render`'s default (`tests/test_bench.py` checks that it is)."""
 
 DEFAULT_STRATEGY = "default"
-SCENE_DIR = Path(__file__).resolve().parent.parent / "data_synthetic" / "scenes"
 
 
 @dataclass
@@ -89,7 +108,7 @@ class Config:
     depth_refs: tuple = (32, 64, 128)  # deep reference max_depth of each depth scene (dense fog needs long paths)
     depth_size: int = 64
     depth_spp: int = 16  # two halves of depth_spp / 2
-    depth_layers_per_call: int = 4
+    depth_layers_per_call: int = 1  # spp of each independent image (the depth statistics are over these images)
     mitsuba_scene: str = "spot_fog"
     mitsuba_spp: int = 64  # per Mitsuba render (the equal-error target is its 64-spp RMSE)
     mitsuba_chunks: int = 16
@@ -100,7 +119,7 @@ class Config:
 
 FULL = Config()
 QUICK = Config(scenes=("spot_fog",), size=16, levels=(4, 8, 16), ref_spp=64, ref_chunks=4, depths=(2, 4),
-               depth_refs=(8, 8, 8), depth_size=16, depth_spp=8, depth_layers_per_call=4, mitsuba_spp=16, mitsuba_chunks=8,
+               depth_refs=(8, 8, 8), depth_size=16, depth_spp=8, depth_layers_per_call=1, mitsuba_spp=16, mitsuba_chunks=8,
                equal_error_draws=4)
 
 
@@ -160,15 +179,6 @@ def expected_rmse(images, reference, ref_rmse: float) -> tuple[float, float, lis
     return e, (se / (2 * e) if e > 0 else float("nan")), [corrected_rmse(math.sqrt(x), ref_rmse) for x in mses]
 
 
-def block_means(image, n: int = 4) -> np.ndarray:
-    """Means over an `n x n` grid of blocks (rows top to bottom, columns left to right), channels averaged."""
-    img = np.asarray(image, np.float64).mean(axis=-1)
-    H, W = img.shape
-    rows = np.array_split(np.arange(H), n)
-    cols = np.array_split(np.arange(W), n)
-    return np.array([[img[np.ix_(r, c)].mean() for c in cols] for r in rows])
-
-
 def time_to_rmse(times, rmses, target: float) -> tuple[float, str]:
     """Time at which a measured RMSE-vs-time curve first reaches `target`: `(seconds, how)`.
 
@@ -221,7 +231,7 @@ def pick_depth(table, rel_error: float, metric: str = "pixel") -> int | None:
 
 
 # ================================================================================================ measurement
-from ._measure import CompileTimer, max_rss_mib  # noqa: E402,F401  (bench_grad uses them from here too)
+from jaxfog._measure import CompileTimer, max_rss_mib  # noqa: E402
 
 
 RenderFn = Callable[..., np.ndarray]
@@ -305,61 +315,49 @@ def variance_reduction(result: dict, base: str = "free_flight", better: str = "e
 
 
 # ===================================================================================================== jaxfog side
-def scene_path(name: str) -> Path:
-    """A shipped scene by name (`spot_fog`), or a path to a scene file."""
-    p = Path(name)
-    if p.suffix == ".json":
-        return p
-    return SCENE_DIR / f"{name}.json"
-
-
-def load(name: str, size: int, extra=()):
-    from ._scene_io import load_scene
-
-    return load_scene(scene_path(name), [f"camera.width={size}", f"camera.height={size}", *extra])
-
-
 def jaxfog_render_fn(paths_per_call: int) -> RenderFn:
     """`render_fn` for `measure_strategy`: `jaxfog.render` with a fixed batch size (so every chunk reuses one
     compiled program), waiting for the pixels."""
     import jax
 
-    from ._render import render
+    import jaxfog as jf
 
     def fn(scene, seed, spp, **strategy):
-        return np.asarray(render(scene, jax.random.key(seed), spp, batch_paths=paths_per_call, **strategy))
+        return np.asarray(jf.render(scene, jax.random.key(seed), spp, sampling=jf.SamplingOptions(**strategy),
+                                    batch_paths=paths_per_call))
 
     return fn
 
 
 def xla_memory(scene, strategy: dict, paths_per_call: int) -> dict | None:
-    """XLA's `memory_analysis()` of the compiled batch that `render` runs (hits the in-memory compile cache).
-    None where the renderer's internals have changed shape."""
+    """XLA's `memory_analysis()` of the compiled batch that `render` runs (hits the in-memory compile cache); it
+    lowers the private `jaxfog._render._render_items`, so it reports `{"error": ...}` where those internals have
+    changed shape."""
     try:
         import jax
         import jax.numpy as jnp
 
-        from ._integrator import SamplingOptions as Options
-        from ._render import DEFAULT_CHUNK_PATHS, _render_items, items_per_call, layers_per_batch
+        from jaxfog import SamplingOptions
+        from jaxfog._render import DEFAULT_CHUNK_PATHS, _render_items, items_per_call, layers_per_batch
 
         n_dev = jax.local_device_count()  # as `render` splits a batch
         n = items_per_call(scene, 1 << 30, paths_per_call, DEFAULT_CHUNK_PATHS, n_dev)
         per = layers_per_batch(scene, 1 << 30, paths_per_call)
         ids = jnp.zeros(n, jnp.uint32)
-        args = (scene, jax.random.key(0), ids, ids, jnp.int32(n), Options(**strategy), None, DEFAULT_CHUNK_PATHS, n_dev)
+        args = (scene, jax.random.key(0), ids, ids, jnp.int32(n), SamplingOptions(**strategy), None,
+                DEFAULT_CHUNK_PATHS, n_dev)
         ma = _render_items.lower(*args).compile().compiled.memory_analysis()
-        mib = 1.0 / (1 << 20)
-        return {"temp_mib": ma.temp_size_in_bytes * mib, "argument_mib": ma.argument_size_in_bytes * mib,
-                "output_mib": ma.output_size_in_bytes * mib,
-                "total_mib": (ma.temp_size_in_bytes + ma.argument_size_in_bytes + ma.output_size_in_bytes) * mib,
-                "paths_per_call": per * scene.camera.width * scene.camera.height}
+        return {**memory_dict(ma), "paths_per_call": per * scene.camera.width * scene.camera.height}
     except Exception as e:  # pragma: no cover - depends on private internals
         return {"error": f"{type(e).__name__}: {e}"}
 
 
 def _source_hash() -> str:
+    """A hash of the library's private modules (the renderer's source), part of the reference cache's key."""
+    import jaxfog
+
     h = hashlib.sha256()
-    for p in sorted(Path(__file__).resolve().parent.glob("_*.py")):
+    for p in sorted(Path(jaxfog.__file__).resolve().parent.glob("_*.py")):
         h.update(p.name.encode())
         h.update(p.read_bytes())
     return h.hexdigest()[:16]
@@ -391,9 +389,7 @@ def reference_image(sf, cfg: Config, cache_dir: Path, render_fn: RenderFn, fresh
             log(f"  reference chunk {i + 1}/{cfg.ref_chunks}: {per_chunk} spp in {times[-1]:.1f} s")
         chunks, times, cached = np.stack(chunks).astype(np.float32), np.asarray(times), False
         cache_dir.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, chunks=chunks, times=times)
-        os.replace(tmp, path)
+        save_npz(path, compressed=True, chunks=chunks, times=times)
     k = chunks.shape[0]
     half_a, half_b = chunks[: k // 2].mean(0), chunks[k // 2:].mean(0)
     image = chunks.mean(0)
@@ -448,99 +444,50 @@ def bench_scene(name: str, cfg: Config, cache_dir: Path, fresh_ref: bool = False
 
 
 # ------------------------------------------------------------------------------------------------- depth study
-_DEPTH_FN = None
-
-
-def _depth_layers_fn():
-    """A jitted `(scene, key, layer_ids, options) -> (n_layers, H*W, 3)` radiance per sample layer, where bounce `i`
-    of layer `k` draws its uniforms from `fold_in(fold_in(k_path, k), i)`: the same paths for every `max_depth`."""
-    global _DEPTH_FN
-    if _DEPTH_FN is not None:
-        return _DEPTH_FN
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-
-    from ._integrator import make_tracer, n_dims, n_iterations, trace_path
-    from ._random import uniforms
-    from ._scene import pack
-
-    @eqx.filter_jit
-    def layers(scene, key, layer_ids, options):
-        cam = scene.camera
-        H, W = cam.height, cam.width
-        tracer = make_tracer(scene, pack(scene), options, None)
-        n_iter, K = n_iterations(scene), n_dims(scene)
-        rows, cols = jnp.divmod(jnp.arange(H * W), W)
-        base = jnp.stack([cols, rows], axis=-1).astype(jnp.float32)
-
-        def one_layer(layer_id):
-            k_pix, k_path = jax.random.split(jax.random.fold_in(key, layer_id))
-            jitter = uniforms(k_pix, H * W, 2)
-            U = jnp.stack([uniforms(jax.random.fold_in(k_path, i), H * W, K) for i in range(n_iter)],
-                          axis=1) if n_iter else jnp.zeros((H * W, 0, K))
-
-            def one_path(pixel, U_p):
-                o, d = cam.generate_ray(pixel)
-                return trace_path(tracer, o, d, U_p)
-
-            return jax.vmap(one_path)(base + jitter, U)
-
-        return jax.lax.map(one_layer, layer_ids)
-
-    _DEPTH_FN = layers
-    return layers
-
-
 def depth_study(cfg: Config, log=print) -> dict:
     """Bias of each `max_depth` in `cfg.depths` (those below the scene's reference depth, `cfg.depth_refs`) against the
-    reference depth, with common random numbers (see the module docstring)."""
+    reference depth, with common random numbers: `jaxfog.render` with the same keys at every depth (see the module
+    docstring for why that traces the same paths)."""
     import jax
-    import jax.numpy as jnp
 
-    from ._integrator import SamplingOptions as Options
+    import jaxfog as jf
 
-    fn = _depth_layers_fn()
-    options = Options(**STRATEGIES[DEFAULT_STRATEGY])
+    sampling = jf.SamplingOptions(**STRATEGIES[DEFAULT_STRATEGY])
     L = cfg.depth_layers_per_call
     n_calls = max(2, -(-cfg.depth_spp // L))
     n_calls += n_calls % 2
     spp = n_calls * L
     key = jax.random.key(5_000_000 + cfg.seed)
-    compiled = set()
-    out = {"width": cfg.depth_size, "height": cfg.depth_size, "spp": spp, "strategy": DEFAULT_STRATEGY, "scenes": {}}
+    keys = [jax.random.fold_in(key, c) for c in range(n_calls)]  # image c: the same key at every depth
+    out = {"width": cfg.depth_size, "height": cfg.depth_size, "spp": spp, "images": n_calls, "spp_per_image": L,
+           "strategy": DEFAULT_STRATEGY, "scenes": {}}
     n_pix = cfg.depth_size ** 2
     for name, ref_depth in zip(cfg.depth_scenes, cfg.depth_refs):
         depths = sorted({d for d in cfg.depths if d < ref_depth} | {ref_depth})
         per_depth = {}
         for d in depths:
-            sf = load(name, cfg.depth_size, [f"integrator.max_depth={d}"])
-            struct = (d, json.dumps([s["type"] for s in sf.data["shapes"]]), json.dumps([x["type"] for x in sf.data["lights"]]))
-            compile_s = None
-            if struct not in compiled:
-                with CompileTimer() as ct:
-                    np.asarray(fn(sf.scene, jax.random.key(999), jnp.arange(L, dtype=jnp.uint32), options))
-                compiled.add(struct)
-                compile_s = ct.seconds
+            scene = load(name, cfg.depth_size, [f"integrator.max_depth={d}"]).scene
+            with CompileTimer() as ct:  # a warm-up render: compiles where no earlier render had this structure
+                np.asarray(jf.render(scene, jax.random.key(999), L, sampling=sampling))
+            compile_s = ct.seconds if ct.seconds > 0 else None
             imgs, elapsed = [], 0.0
-            for c in range(n_calls):
-                ids = jnp.arange(c * L, (c + 1) * L, dtype=jnp.uint32)
+            for k in keys:
                 t0 = time.perf_counter()
-                imgs.append(np.asarray(fn(sf.scene, key, ids, options), np.float64))
+                imgs.append(np.asarray(jf.render(scene, k, L, sampling=sampling), np.float64).reshape(n_pix, 3))
                 elapsed += time.perf_counter() - t0
-            per_depth[d] = {"layers": np.concatenate(imgs), "time_per_spp_s": elapsed / spp, "compile_s": compile_s}
+            per_depth[d] = {"layers": np.stack(imgs), "time_per_spp_s": elapsed / spp, "compile_s": compile_s}
             log(f"  {name} max_depth {d:3d}: {1e3 * elapsed / spp:7.0f} ms/spp at {cfg.depth_size}x{cfg.depth_size}"
                 + (f" (compile {compile_s:.1f} s)" if compile_s is not None else ""))
-        ref_layers = per_depth[ref_depth]["layers"]  # (spp, n_pix, 3)
+        ref_layers = per_depth[ref_depth]["layers"]  # (images, n_pix, 3)
         mean_ref = float(ref_layers.mean())
-        per_path = ref_layers.sum(-1)
+        per_path = ref_layers.sum(-1)  # one path per (image, pixel) when depth_layers_per_call is 1
         largest_share = float(per_path.max() / per_path.sum()) if per_path.sum() > 0 else 0.0
-        h = spp // 2
+        h = n_calls // 2
         rows = []
         for d in depths:
             lay = per_depth[d]["layers"]
-            diff = ref_layers - lay  # per sample: the contribution of segments d+1 .. ref_depth (the same paths)
-            m, se = mean_and_se(diff.reshape(spp, -1).mean(1))
+            diff = ref_layers - lay  # per image: the contribution of segments d+1 .. ref_depth (the same paths)
+            m, se = mean_and_se(diff.reshape(n_calls, -1).mean(1))
             da, db = diff[:h].mean(0), diff[h:].mean(0)
             b2 = float(np.mean(da * db))
             noise = float(np.sqrt(np.mean((da - db) ** 2)) / 2)
@@ -563,25 +510,25 @@ def depth_study(cfg: Config, log=print) -> dict:
 # ---------------------------------------------------------------------------------------------------- mitsuba
 def run_mitsuba(name: str, size: int, spp: int, chunks: int, workdir: Path, python: str = sys.executable,
                 env: dict | None = None, timeout: float = 1800, seed0: int = 0) -> dict:
-    """Render the scene in Mitsuba 3 in a subprocess (`jaxfog.bench_mitsuba`): the images (Mitsuba seeds `seed0`,
+    """Render the scene in Mitsuba 3 in a subprocess (`benchmarks.bench_mitsuba`): the images (Mitsuba seeds `seed0`,
     `seed0 + 1`, ...), times, memory; or `{"skipped": reason}` when Mitsuba (or its LLVM backend) is not there."""
     workdir.mkdir(parents=True, exist_ok=True)
     out = workdir / f"mitsuba_{name}_{size}.npz"
     if out.exists():
         out.unlink()
-    cmd = [python, "-m", "jaxfog.bench_mitsuba", str(scene_path(name)), "--set", f"camera.width={size}",
+    cmd = [python, "-m", "benchmarks.bench_mitsuba", str(scene_path(name)), "--set", f"camera.width={size}",
            "--set", f"camera.height={size}", "--spp", str(spp), "--chunks", str(chunks), "--seed", str(seed0), "--out", str(out),
            "--quiet"]
-    env = dict(os.environ if env is None else env)
-    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parent.parent)]
-                                        + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     try:
-        p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+        p = subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env(env), timeout=timeout)
     except subprocess.TimeoutExpired:
         return {"skipped": f"Mitsuba did not finish within {timeout:.0f} s"}
     if p.returncode != 0 or not out.exists():
-        lines = [x for x in (p.stderr or "").strip().splitlines() if x.strip()]
+        lines = [x.strip() for x in (p.stderr or "").strip().splitlines() if x.strip()]
         reason = lines[-1] if lines else f"exit code {p.returncode}"
+        if p.returncode < 0 or p.returncode > 128:  # killed by a signal, e.g. an LLVM backend that aborts
+            first = next((x for x in lines if "error" in x.lower()), reason)
+            reason = f"Mitsuba's process died (exit code {p.returncode}): {first[:200]}"
         return {"skipped": reason.replace("mitsuba skipped: ", "")}
     z = np.load(out)
     res = {k: z[k] for k in z.files}
@@ -940,28 +887,13 @@ def plot_depth(depth: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o).__name__)
-
-
-def _machine() -> dict:
-    import jax
-
-    return {"platform": platform.platform(), "python": platform.python_version(), "jax": jax.__version__,
-            "devices": [str(d) for d in jax.devices()], "cpu_count": os.cpu_count(),
-            "loadavg_start": list(os.getloadavg()), "nice": os.nice(0)}
-
-
 # ========================================================================================================= CLI
 def configure(p: argparse.ArgumentParser) -> None:
-    """Adds the benchmark's arguments to `p` (used by `python -m jaxfog.bench` and `jaxfog bench`)."""
+    """Adds the benchmark's arguments to `p` (`python -m benchmarks.bench`)."""
     p.add_argument("--quick", action="store_true", help="a small, fast smoke run (16x16, few spp)")
-    p.add_argument("--out", default="bench_out", metavar="DIR",
-                   help="output folder: bench.json, PNGs, cache/ with the references (default bench_out)")
+    p.add_argument("--out", default=str(REPO / "bench_out"), metavar="DIR",
+                   help="output folder: bench.json, PNGs, cache/ with the references (default: bench_out in the "
+                        "repository root)")
     p.add_argument("--scenes", nargs="+", metavar="SCENE", help="benchmark scenes (names or .json paths)")
     p.add_argument("--parts", nargs="+", choices=("strategies", "depth", "mitsuba"),
                    help="which studies to run (default all; mitsuba needs strategies)")
@@ -1025,7 +957,7 @@ def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.0
                   log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     cache = out / "cache"
-    result: dict = {"schema": 1, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": _machine(),
+    result: dict = {"schema": 1, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": machine_info(),
                     "config": dataclasses.asdict(cfg),
                     "memory_method": "xla_memory: compiled memory_analysis() of one render batch (argument + output + "
                                      "temporary buffers); max_rss: peak resident set size of the process "
@@ -1062,7 +994,7 @@ def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.0
                 fn(sf.scene, 9_000_000 + cfg.seed, spp_t, **STRATEGIES[DEFAULT_STRATEGY])
                 return (time.perf_counter() - t0) / spp_t
 
-            from ._render import DEFAULT_BATCH_PATHS
+            from jaxfog._render import DEFAULT_BATCH_PATHS
 
             render_default = jaxfog_render_fn(DEFAULT_BATCH_PATHS)  # what `jaxfog.render(scene, key, spp)` does
 
@@ -1089,9 +1021,7 @@ def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.0
             (s["xla_memory"] or {}).get("total_mib", 0.0) for s in sc["strategies"].values())
     result["machine"]["loadavg_end"] = list(os.getloadavg())
     result["total_wall_s"] = time.perf_counter() - t_start
-    tmp = out / "bench.json.tmp"
-    tmp.write_text(json.dumps(result, indent=1, default=_json_default))
-    os.replace(tmp, out / "bench.json")
+    write_json(out / "bench.json", result)
     if plots:
         if result.get("scenes"):
             plot_strategies(result, out / "rmse_vs_time.png")
@@ -1105,7 +1035,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         cfg = config_from_args(args)
     except ValueError as e:
-        print(f"jaxfog bench: error: {e}", file=sys.stderr)
+        print(f"benchmarks.bench: error: {e}", file=sys.stderr)
         return 2
     out = Path(args.out)
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
@@ -1118,12 +1048,16 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m jaxfog.bench", description=__doc__.split("\n\n")[0],
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     configure(p)
-    args = p.parse_args(argv)
-    from jaxfog._devices import use_cpu_cores
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from jaxfog import use_cpu_cores
 
     use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     return run(args)

@@ -1,0 +1,4 @@
+"""jaxfog's benchmarks (not part of the installed package): run from the repository root as
+`python -m benchmarks.bench`, `python -m benchmarks.bench_grad`, `python -m benchmarks.bench_profile`;
+`benchmarks.bench_mitsuba` is the Mitsuba 3 side that `benchmarks.bench` runs in a subprocess. Shared helpers:
+`benchmarks.common`. Results and the commands that made them: `docs/results/`."""
