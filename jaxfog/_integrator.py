@@ -108,13 +108,14 @@ class Layout:
     Fixed dimensions: `free_flight` (branch and distance), `polar` and `azimuth` (the scattering direction, shared
     by every technique), `choice` (a BSDF's discrete choice: Fresnel reflection or refraction), `lobe` and
     `lobe_light` (take the light-angle lobe; which light), `mix` and `mix_light` (place the vertex by equiangular
-    sampling; toward which light). Then `lights[i]`: the first of light i's `n_dims` uniforms (scene order), and
-    `equiangular[j]`: one per point-like light.
+    sampling; toward which light). Then `lights[i]`: the first of light i's `n_dims` uniforms (scene order),
+    `equiangular[j]`: one per point-like light, and `rr` (Russian roulette; only for `max_depth = -1`, else None).
     """
 
     lights: tuple
     equiangular: tuple
     n_dims: int
+    rr: int | None = None
     free_flight: int = 0
     polar: int = 1
     azimuth: int = 2
@@ -135,7 +136,10 @@ def layout(scene: Scene) -> Layout:
         starts.append(k)
         k += light.n_dims
     eq = tuple(range(k, k + len(scene.point_lights)))
-    return Layout(lights=tuple(starts), equiangular=eq, n_dims=k + len(eq))
+    k += len(eq)
+    if scene.max_depth == -1:
+        return Layout(lights=tuple(starts), equiangular=eq, n_dims=k + 1, rr=k)
+    return Layout(lights=tuple(starts), equiangular=eq, n_dims=k)
 
 
 def n_dims(scene: Scene) -> int:
@@ -144,7 +148,10 @@ def n_dims(scene: Scene) -> int:
 
 
 def n_iterations(scene: Scene) -> int:
-    """Segments to trace: the last segment (number max_depth) only matters when it can hit an area light."""
+    """Segments to trace for a fixed `max_depth`: the last segment (number max_depth) only matters when it can hit
+    an area light. (Unbounded paths, `max_depth = -1`, are traced by `_render`'s regenerating loop instead.)"""
+    if scene.max_depth == -1:
+        raise ValueError("n_iterations: a scene with max_depth = -1 has no fixed number of segments")
     return scene.max_depth if scene.area_lights else scene.max_depth - 1
 
 
@@ -527,7 +534,7 @@ def update(state: PathState, seg: Segment, L, med: Next | None, surf: Next) -> P
 
 def bounce(tr: Tracer, state: PathState, b, U) -> PathState:
     """One segment of the path and its vertex: the stages in order."""
-    nee_ok = state.alive & (b + 2 <= tr.scene.max_depth)
+    nee_ok = state.alive if tr.scene.max_depth == -1 else state.alive & (b + 2 <= tr.scene.max_depth)
     hit = intersect(tr.pk, state.o, state.d)
     seg = free_flight(tr, state, hit, U) if tr.medium is not None else no_flight(hit)
     L = state.L
@@ -540,12 +547,35 @@ def bounce(tr: Tracer, state: PathState, b, U) -> PathState:
     return update(state, seg, L, med, surf)
 
 
-def trace_path(tr: Tracer, o, d, U) -> Float[Array, "3"]:
-    """Radiance (RGB) arriving at the camera along the ray `(o, d)`; `U` holds `(n_iterations, n_dims)` uniforms."""
-    init = PathState(
+def start_path(o, d) -> PathState:
+    """The state of a camera path leaving `o` along `d`."""
+    return PathState(
         o=o, d=d, beta=jnp.ones(3, jnp.float32), L=jnp.zeros(3, jnp.float32), alive=jnp.bool_(True),
         specular=jnp.bool_(True), pdf_dir=jnp.float32(0.0), in_medium=jnp.bool_(True),
     )
+
+
+RR_MAX_SURVIVAL = 0.95
+"""Largest Russian-roulette survival probability (Mitsuba's rule: `min(max_c beta_c, 0.95)`)."""
+
+
+def russian_roulette(tr: Tracer, state: PathState, b, U) -> PathState:
+    """After the bounce `b` (0-based), from vertex `rr_depth` on: the path survives with probability
+    `q = min(max_c beta_c, 0.95)` (a sampling decision: never differentiated) and its throughput is divided by q.
+    Mitsuba also multiplies by the squared relative IOR of the glass the path is in; jaxfog does not (any q > 0
+    is unbiased; the choice only moves variance)."""
+    q = jax.lax.stop_gradient(jnp.minimum(jnp.max(state.beta), RR_MAX_SURVIVAL))
+    apply = b + 1 >= tr.scene.rr_depth
+    survive = ~apply | (U[tr.layout.rr] < q)
+    beta = jnp.where(apply, state.beta / jnp.where(q > 0, q, 1.0), state.beta)
+    alive = state.alive & survive
+    return state._replace(beta=jnp.where(alive, beta, 0.0), alive=alive)
+
+
+def trace_path(tr: Tracer, o, d, U) -> Float[Array, "3"]:
+    """Radiance (RGB) arriving at the camera along the ray `(o, d)` for a fixed `max_depth`; `U` holds
+    `(n_iterations, n_dims)` uniforms."""
+    init = start_path(o, d)
     if U.shape[0] == 0:
         return init.L
     body = jax.checkpoint(lambda state, xs: (bounce(tr, state, *xs), None))

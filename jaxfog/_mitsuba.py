@@ -163,7 +163,8 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
     - `scene`: a scene file path, a `SceneFile` (`jaxfog.load_scene(...)`) or a scene-file dict (validated here).
     - `spp`: the sampler's `sample_count` (default: the file's `integrator.spp`; `mi.render(..., spp=N)` overrides it).
     - `max_depth`: the `volpath` integrator's `max_depth`, in segments as in jaxfog (default: the file's
-      `integrator.max_depth`). Russian roulette is off (`rr_depth` above `max_depth`), as in jaxfog.
+      `integrator.max_depth`). Russian roulette is off (`rr_depth` above `max_depth`), as in jaxfog, except for
+      `max_depth = -1` (paths of any length), where both use Russian roulette from the file's `rr_depth` on.
     - `seed`: the `independent` sampler's seed (default 0).
     - `overrides`: `"key.path=value"` strings applied before conversion, as in `load_scene`.
     - `transform`: turns each 4x4 `to_world` matrix (numpy float64) into what the dict holds. Default: a
@@ -177,13 +178,17 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
     data = _scene_data(scene, overrides)
     to_world = transform if transform is not None else _default_transform()
     spp = _positive_int(data["integrator"]["spp"] if spp is None else spp, "spp")
-    max_depth = _positive_int(data["integrator"]["max_depth"] if max_depth is None else max_depth, "max_depth")
+    max_depth = data["integrator"]["max_depth"] if max_depth is None else max_depth
+    if max_depth != -1:
+        max_depth = _positive_int(max_depth, "max_depth")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**32:
         raise ValueError(f"to_mitsuba: seed must be an integer in [0, 2^32), got {seed!r}")
     cam = data["camera"]
     out: dict = {
         "type": "scene",
-        "integrator": {"type": "volpath", "max_depth": max_depth, "rr_depth": max_depth + 1000},
+        # fixed depths: no Russian roulette, as in jaxfog; max_depth = -1: Russian roulette from rr_depth on
+        "integrator": {"type": "volpath", "max_depth": max_depth,
+                       "rr_depth": int(data["integrator"].get("rr_depth", 5)) if max_depth == -1 else max_depth + 1000},
     }
     med = data.get("medium")
     fog_ref = None

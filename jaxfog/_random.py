@@ -38,9 +38,18 @@ def uniforms(key: PRNGKeyArray, n_rows: int, n_cols: int, row0=0) -> Float[Array
     (one threefry call per key)."""
     if not (0 < n_rows <= 1 << 32 and 0 < n_cols <= 1 << 32):
         raise ValueError(f"uniforms: n_rows={n_rows} and n_cols={n_cols} must be in [1, 2^32]")
-    k = jax.random.bits(key, (3,), jnp.uint32)
+    k = key_words(key)
     rows = jnp.asarray(row0).astype(jnp.uint32) + jnp.arange(n_rows, dtype=jnp.uint32)
-    h_row = mix(rows ^ k[0])
-    a_col = mix(jnp.arange(n_cols, dtype=jnp.uint32) ^ k[1])
-    x = mix(mix(h_row[:, None] + a_col[None, :]) ^ k[2])
+    return hashed_uniforms(k, rows[:, None], jnp.arange(n_cols, dtype=jnp.uint32)[None, :])
+
+
+def key_words(key: PRNGKeyArray) -> Array:
+    """The three uint32 words that key the hash (one threefry call)."""
+    return jax.random.bits(key, (3,), jnp.uint32)
+
+
+def hashed_uniforms(k: Array, rows: Array, cols: Array) -> Float[Array, "..."]:
+    """Entries `(rows, cols)` (uint32 arrays, broadcast together) of the table `uniforms` draws for the key whose
+    `key_words` are `k`: lets a path draw its own numbers wherever it is traced (path regeneration)."""
+    x = mix(mix(mix(rows ^ k[0]) + mix(cols ^ k[1])) ^ k[2])
     return (x >> 8).astype(jnp.float32) * jnp.float32(2.0**-24)

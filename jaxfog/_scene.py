@@ -31,9 +31,10 @@ class Scene(eqx.Module):
 
     **Fields:** `camera`; `shapes`: tuple of `Sphere`/`Rectangle`; `lights`: tuple of lights (`PointLight`,
     `SpotLight`, `AreaLight`); `medium`: a medium (`HomogeneousMedium`) or None (no fog: no medium code is
-    compiled); `max_depth`: static int
-    >= 1, the longest path in segments from the camera to a light, the light-sampling segment included
-    (docs/conventions.md; 8 is the default, 2 is single scattering).
+    compiled); `max_depth`: static int >= 1, the longest path in segments from the camera to a light, the
+    light-sampling segment included (docs/conventions.md; 8 is the default, 2 is single scattering), or -1 for paths
+    of any length, ended by Russian roulette from the `rr_depth`-th vertex on (static int >= 1, default 5, as in
+    Mitsuba; fixed depths use no Russian roulette).
     """
 
     camera: Camera
@@ -41,10 +42,14 @@ class Scene(eqx.Module):
     lights: tuple = ()
     medium: AbstractMedium | None = None
     max_depth: int = eqx.field(static=True, default=8)
+    rr_depth: int = eqx.field(static=True, default=5)
 
     def __check_init__(self):
-        if not isinstance(self.max_depth, int) or self.max_depth < 1:
-            raise ValueError(f"max_depth must be an integer >= 1, got {self.max_depth!r}")
+        if not isinstance(self.max_depth, int) or isinstance(self.max_depth, bool) or not (
+                self.max_depth >= 1 or self.max_depth == -1):
+            raise ValueError(f"Scene.max_depth must be an integer >= 1, or -1 (no limit), got {self.max_depth!r}")
+        if not isinstance(self.rr_depth, int) or isinstance(self.rr_depth, bool) or self.rr_depth < 1:
+            raise ValueError(f"Scene.rr_depth must be an integer >= 1, got {self.rr_depth!r}")
         for s in self.shapes:
             if not isinstance(s, (Sphere, Rectangle)):
                 raise TypeError(f"shapes must be Sphere or Rectangle, got {type(s).__name__}")

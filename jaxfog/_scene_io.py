@@ -153,6 +153,13 @@ def _perpendicular_edges(values: dict, path: str) -> None:
         )
 
 
+def _depth_is_positive_or_unbounded(values: dict, path: str) -> None:
+    """`max_depth` >= 1, or -1 for no limit (Russian roulette after `rr_depth`), as in Mitsuba."""
+    if values["max_depth"] == 0:
+        raise _Invalid(_join(path, "max_depth"), "0 is not a path length",
+                       "expected an integer >= 1, or -1 for paths of any length")
+
+
 def _up_not_parallel(values: dict, path: str) -> None:
     """Camera: a view direction exists and `up` is not parallel to it."""
     view = [t - o for t, o in zip(values["target"], values["origin"])]
@@ -304,7 +311,9 @@ MEDIA = {
 MEDIUM = Typed(MEDIA, default="homogeneous")
 
 INTEGRATOR = Section(
-    {"max_depth": Field(INTEGER, default=8, range=AT_LEAST_1), "spp": Field(INTEGER, default=64, range=AT_LEAST_1)}
+    {"max_depth": Field(INTEGER, default=8, range=Range(-1, None)), "rr_depth": Field(INTEGER, default=5, range=AT_LEAST_1),
+     "spp": Field(INTEGER, default=64, range=AT_LEAST_1)},
+    checks=(_depth_is_positive_or_unbounded,),
 )
 
 SCHEMA = Section(
@@ -575,6 +584,7 @@ def _build_scene(valid: dict):
         lights=parts["lights"],
         medium=parts["medium"],
         max_depth=valid["integrator"]["max_depth"],
+        rr_depth=valid["integrator"]["rr_depth"],
     )
 
 
