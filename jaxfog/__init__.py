@@ -1,7 +1,7 @@
 """jaxfog: a differentiable volumetric path tracer for homogeneous fog, in JAX.
 
 Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror`, `Glass`, `PointLight`,
-`SpotLight`, `AreaLight`, `HenyeyGreenstein`, `Rayleigh`, `HomogeneousMedium`, `Scene`) and their interfaces
+`SpotLight`, `AreaLight`, `HenyeyGreenstein`, `Rayleigh`, `TwoTermHG`, `Draine`, `Droplet`, `HomogeneousMedium`, `Scene`) and their interfaces
 (`AbstractBSDF`, `AbstractLobeBSDF`, `AbstractLight`, `AbstractPointLikeLight`, `AbstractPhaseFunction`,
 `AbstractMedium`), `render` with its `SamplingOptions`, scene files
 (`load_scene`, `SceneError`) and image I/O (`write_exr`, `read_exr`, `write_png`).
@@ -28,8 +28,11 @@ from ._lights import (
 from ._medium import AbstractMedium as AbstractMedium, HomogeneousMedium as HomogeneousMedium
 from ._phase import (
     AbstractPhaseFunction as AbstractPhaseFunction,
+    Draine as Draine,
+    Droplet as Droplet,
     HenyeyGreenstein as HenyeyGreenstein,
     Rayleigh as Rayleigh,
+    TwoTermHG as TwoTermHG,
 )
 from ._render import render as render
 from ._scene import Scene as Scene

@@ -283,6 +283,18 @@ CAMERA = Section(
 PHASES = {
     "hg": Section({"g": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True))}, build=_make("HenyeyGreenstein")),
     "rayleigh": Section({}, build=_make("Rayleigh")),
+    "two_term_hg": Section(
+        {"g1": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True)),
+         "g2": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True)),
+         "w": Field(NUMBER, range=Range(0, 1))},
+        build=_make("TwoTermHG"),
+    ),
+    "draine": Section(
+        {"g": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True)),
+         "alpha": Field(NUMBER, range=Range(0, 1000, lo_open=True))},
+        build=_make("Draine"),
+    ),
+    "droplet": Section({"diameter": Field(NUMBER, range=Range(0, 50, lo_open=True))}, build=_make("Droplet")),
 }
 """Phase functions, selected as `"phase": {"type": ...}` in a medium; a bare `"g"` in the medium means `"hg"`."""
 

@@ -125,7 +125,8 @@ def _in_scatter_integrand(tau, o, dirs, c, intensity, sigma_t, sigma_s, g, geome
     phi = phi_a + tau * (phi_b - phi_a)
     t = delta + D * np.tan(phi)
     r = D / np.cos(phi)
-    val = (phi_b - phi_a) / D * hg_np(-np.sin(phi), g)  # cos(theta_s) = -sin(phi)
+    # cos(theta_s) = -sin(phi); `g` is HG's g, or a float64 phase function of cos theta
+    val = (phi_b - phi_a) / D * (g(-np.sin(phi)) if callable(g) else hg_np(-np.sin(phi), g))
     if spot is not None:
         axis = np.asarray(spot[0], np.float64) / np.linalg.norm(spot[0])
         x = o + t[..., None] * dirs[:, None, :]
