@@ -116,6 +116,20 @@ def _bsdf(b: dict) -> dict:
     raise ValueError(f"no Mitsuba BSDF for {kind!r}")
 
 
+def _phase(med: dict) -> dict:
+    """Mitsuba's phase function for a medium: `hg` (bare g or type hg), `rayleigh`, and two-term HG as `blendphase`
+    (Mitsuba blends `(1 - weight) phase1 + weight phase2`, so weight = 1 - w). Others raise (no exact counterpart)."""
+    ph = med.get("phase") or {"type": "hg", "g": med["g"]}
+    if ph["type"] == "hg":
+        return {"type": "hg", "g": float(ph["g"])}
+    if ph["type"] == "rayleigh":
+        return {"type": "rayleigh"}
+    if ph["type"] == "two_term_hg":
+        return {"type": "blendphase", "weight": 1.0 - float(ph["w"]), "phase1": {"type": "hg", "g": float(ph["g1"])},
+                "phase2": {"type": "hg", "g": float(ph["g2"])}}
+    raise ValueError(f"no Mitsuba phase function for {ph['type']!r} in this comparison")
+
+
 def scene_dict(data: dict, mi=None, spp: int = 16) -> dict:
     """The `mi.load_dict` dict of a validated jaxfog scene-file dict (see the module docstring)."""
     if mi is None:
@@ -132,7 +146,7 @@ def scene_dict(data: dict, mi=None, spp: int = 16) -> dict:
     med = data.get("medium")
     fog_ref = None
     if med is not None:
-        out["fog"] = {"type": "homogeneous", "albedo": _albedo(med["albedo"]), "phase": {"type": "hg", "g": float(med["g"])},
+        out["fog"] = {"type": "homogeneous", "albedo": _albedo(med["albedo"]), "phase": _phase(med),
                       **_extinction(med["sigma_t"])}
         fog_ref = {"type": "ref", "id": "fog"}
         half = float(med.get("extent", 1000.0)) / 2
