@@ -6,6 +6,10 @@
 | `g` | HG asymmetry in (-1, 1) | `atanh g` |
 | `albedo` | single-scattering albedo in (0, 1), all channels | `logit albedo` |
 | `intensity` | intensity (W/sr) of the scene's first light, all channels (radiance for an area light) | `log intensity` |
+| `sigma_t[r]`, `sigma_t[g]`, `sigma_t[b]` | one channel of the extinction (`sigma_t:rgb`: all three) | `log` |
+| `albedo[r]`, `albedo[g]`, `albedo[b]` | one channel of the albedo (`albedo:rgb`: all three) | `logit` |
+| `g1`, `g2`, `w` | two-term HG's lobes in (-1, 1) and the first lobe's weight in (0, 1) | `atanh`, `atanh`, `logit` |
+| `diameter` | fog-droplet diameter in µm, kept in (5, 50) (one smooth range of the fits) | `logit((d - 5) / 45)` |
 
 Each parameter is a `ParamSpec` in `SPECS`: a `Transform` to the unconstrained coordinate and `get` / `set` on a
 scene; parameters of the medium or its phase function are made with `medium_param`.
@@ -112,6 +116,27 @@ def medium_param(name: str, transform: Transform, lo: float, hi: float, unit: st
     return ParamSpec(name, transform, lo, hi, unit, get, set_)
 
 
+CHANNELS = ("r", "g", "b")
+
+
+def channel_param(name: str, transform: Transform, lo: float, hi: float, unit: str, field: str, channel: int):
+    """One channel (`0, 1, 2` = r, g, b) of an RGB field of the scene's medium, as its own fit parameter
+    `field[r]` etc.: get reads that channel, set writes it and keeps the other two."""
+    def owner_value(scene):
+        med = _medium(scene, name)
+        if field not in {f.name for f in dataclasses.fields(med)}:
+            raise FitError(f"cannot fit {name}: the scene's medium ({type(med).__name__}) has no RGB field {field!r}")
+        return getattr(med, field)
+
+    def get(scene):
+        return float(owner_value(scene)[channel])
+
+    def set_(scene, value):
+        return scene.replace_medium(**{field: owner_value(scene).at[channel].set(value)})
+
+    return ParamSpec(name, transform, lo, hi, unit, get, set_)
+
+
 def _light_field(scene):
     if not scene.lights:
         raise FitError("cannot fit intensity: the scene has no light")
@@ -135,14 +160,32 @@ SPECS = {
 }
 """Every fit parameter by name. A model adds its parameters here (e.g. with `medium_param`)."""
 
+# chromatic media: one parameter per channel, `sigma_t[r]` ... `albedo[b]` (`--fit sigma_t:rgb` names all three)
+for _field, _tr, _lo, _hi, _unit in (("sigma_t", LOG, 0.0, np.inf, "1/unit"), ("albedo", LOGIT, 0.0, 1.0, "")):
+    for _c, _ch in enumerate(CHANNELS):
+        SPECS[f"{_field}[{_ch}]"] = channel_param(f"{_field}[{_ch}]", _tr, _lo, _hi, _unit, _field, _c)
+
+# phase functions: two-term HG's lobes and weight, the fog droplets' diameter (kept inside the fits' range 5..50 µm,
+# where they are smooth: jaxfog._phase.DROPLET_PIECES)
+SPECS.update({
+    "g1": medium_param("g1", ATANH, -1.0, 1.0),
+    "g2": medium_param("g2", ATANH, -1.0, 1.0),
+    "w": medium_param("w", LOGIT, 0.0, 1.0),
+    "diameter": medium_param("diameter", interval(5.0, 50.0), 5.0, 50.0, "µm"),
+})
+
+EXPANSIONS = {f"{f}:rgb": [f"{f}[{c}]" for c in CHANNELS] for f in ("sigma_t", "albedo")}
+"""Names that stand for several parameters: `sigma_t:rgb` is `sigma_t[r] sigma_t[g] sigma_t[b]`."""
+
 
 def check_names(names) -> list[str]:
-    names = list(names)
+    """The parameter names of a fit, with `EXPANSIONS` (`sigma_t:rgb`) expanded, checked and without repeats."""
+    names = [m for n in names for m in EXPANSIONS.get(n, [n])]
     if not names:
-        raise FitError("--fit needs at least one parameter name; valid: " + ", ".join(SPECS))
+        raise FitError("--fit needs at least one parameter name; valid: " + ", ".join([*SPECS, *EXPANSIONS]))
     for n in names:
         if n not in SPECS:
-            raise FitError(f"unknown parameter {n!r}; valid: {', '.join(SPECS)}")
+            raise FitError(f"unknown parameter {n!r}; valid: {', '.join([*SPECS, *EXPANSIONS])}")
     if len(set(names)) != len(names):
         raise FitError(f"parameter names repeat: {names}")
     return names

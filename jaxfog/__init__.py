@@ -1,7 +1,7 @@
 """jaxfog: a differentiable volumetric path tracer for homogeneous fog, in JAX.
 
 Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror`, `Glass`, `PointLight`,
-`SpotLight`, `AreaLight`, `HenyeyGreenstein`, `Rayleigh`, `HomogeneousMedium`, `Scene`) and their interfaces
+`SpotLight`, `AreaLight`, `HenyeyGreenstein`, `Rayleigh`, `TwoTermHG`, `Draine`, `Droplet`, `HomogeneousMedium`, `Scene`) and their interfaces
 (`AbstractBSDF`, `AbstractLobeBSDF`, `AbstractLight`, `AbstractPointLikeLight`, `AbstractPhaseFunction`,
 `AbstractMedium`), `render` with its `SamplingOptions`, scene files
 (`load_scene`, `SceneError`), image I/O (`write_exr`, `read_exr`, `write_png`) and the same scene in Mitsuba 3
@@ -30,8 +30,11 @@ from ._medium import AbstractMedium as AbstractMedium, HomogeneousMedium as Homo
 from ._mitsuba import render_mitsuba as render_mitsuba, to_mitsuba as to_mitsuba
 from ._phase import (
     AbstractPhaseFunction as AbstractPhaseFunction,
+    Draine as Draine,
+    Droplet as Droplet,
     HenyeyGreenstein as HenyeyGreenstein,
     Rayleigh as Rayleigh,
+    TwoTermHG as TwoTermHG,
 )
 from ._render import render as render
 from ._scene import Scene as Scene

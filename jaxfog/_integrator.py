@@ -106,7 +106,9 @@ class Layout:
     """Which uniform of a bounce's row feeds which decision (static, built from the scene's structure).
 
     Fixed dimensions: `free_flight` (branch and distance), `polar` and `azimuth` (the scattering direction, shared
-    by every technique), `choice` (a BSDF's discrete choice: Fresnel reflection or refraction), `lobe` and
+    by every technique), `choice` (a BSDF's discrete choice: Fresnel reflection or refraction), `channel` (the same
+    column as `choice`: the spectral channel whose density draws a medium vertex's distance; a medium vertex has no
+    BSDF choice, and the branch decision does not read it, so a surface vertex still sees it uniform), `lobe` and
     `lobe_light` (take the light-angle lobe; which light), `mix` and `mix_light` (place the vertex by equiangular
     sampling; toward which light). Then `lights[i]`: the first of light i's `n_dims` uniforms (scene order),
     `equiangular[j]`: one per point-like light, and `rr` (Russian roulette; only for `max_depth = -1`, else None).
@@ -120,6 +122,7 @@ class Layout:
     polar: int = 1
     azimuth: int = 2
     choice: int = 3
+    channel: int = 3
     lobe: int = 4
     lobe_light: int = 5
     mix: int = 6
@@ -314,7 +317,7 @@ def free_flight(tr: Tracer, state: PathState, hit: Hit, U) -> Segment:
             e = equiangular_setup(light.position, o, d, jnp.maximum(0.0, t0), jnp.minimum(s, t1))
             eqs.append(e)
             t_eq.append(equiangular_sample(e, U[ly.equiangular[j]], s))
-    fl = tr.sampler.sample_free_flight(o, d, s, hit.found, state.in_medium, U[ly.free_flight])
+    fl = tr.sampler.sample_free_flight(o, d, s, hit.found, state.in_medium, U[ly.free_flight], U[ly.channel])
     t = fl.t
     if tr.mix > 0:
         # the vertex distance is drawn from a mixture: free flight, or equiangular toward a light (the path then

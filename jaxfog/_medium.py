@@ -22,6 +22,16 @@ then moves with `sigma_t`, and the branch, decided by `u < q` with a detached `q
 For the homogeneous medium, with sampling rate `sh`: `t = -log(1 - x (1 - exp(-sh s))) / sh`, `x = u / q`; with
 `q = 1 - exp(-sh s)` this *is* ordinary free-flight sampling `t = -log(1 - u) / sh`. `q` is floored at `Q_MIN` so
 that very thin fog (even `sigma_t = 0`) still samples medium vertices that carry the derivative w.r.t. `sigma_t`.
+
+RGB media: one-sample spectral MIS (`docs/estimators.md`, "Chromatic media"). Each channel `c` is a technique with
+rate `sh_c = max(sigma_t_c, SIGMA_HAT_MIN)` and branch probability `q_c`; the medium branch is taken with the
+channel-averaged `q = mean_c q_c` (one uniform, `u < q`, exactly as for grey fog), its channel is drawn uniformly
+with a second uniform (`u_channel`), and `t` from that channel's truncated exponential with `x = u / q`. The
+vertex density is the balance-heuristic mixture `q mean_c p_c(t)`, and the surface branch has `1 - q =
+mean_c (1 - q_c)`: no channel's weight divides by a starved density. When the three channels are equal, `q`, `t`
+and every decision are bitwise those of the grey scheme and the weights reduce to its formulas (the means are
+written so that equal entries give exactly that entry). `spectral_mis=False` keeps the former scalar rate (the
+smallest channel) for comparison.
 """
 
 
@@ -73,15 +83,18 @@ class AbstractMedium(eqx.Module):
     extent: AbstractVar[float]
 
     @abc.abstractmethod
-    def sample_free_flight(self, o, d, s, ends_on_surface, active, u) -> FlightSample:
+    def sample_free_flight(self, o, d, s, ends_on_surface, active, u, u_channel) -> FlightSample:
         """On the sampler: choose the branch with `u` in [0, 1) and, for the medium branch, a distance in [0, s).
         `ends_on_surface`: the segment ends on a surface (its branch gets probability >= 1 - Q_MAX_SURFACE);
-        `active`: the path is in the medium (outside glass objects; otherwise q = 0)."""
+        `active`: the path is in the medium (outside glass objects; otherwise q = 0); `u_channel` in [0, 1): the
+        spectral channel whose density draws `t` (RGB media; the branch itself must not depend on it, because the
+        tracer gives the same uniform to a surface vertex's discrete BSDF choice, `Layout.channel`)."""
 
     @abc.abstractmethod
     def free_flight_pdf(self, o, d, s, q, t) -> Float[Array, ""]:
         """On the sampler: density (1/scene unit) of a medium vertex at `t` in [0, s], the branch probability `q`
-        included."""
+        included: `q` times the density of `t` given the medium branch (for RGB media the channel mixture: the
+        MIS partner of equiangular sampling)."""
 
     @abc.abstractmethod
     def collision_weight(self, sampler, o, d, s, q, t) -> Float[Array, "3"]:
@@ -110,12 +123,16 @@ class HomogeneousMedium(AbstractMedium):
     - `phase`: the phase function (any `AbstractPhaseFunction`; `HenyeyGreenstein(g)` in the shipped scenes).
     - `extent`: static; a ray that travels this far (scene units) without meeting a surface leaves the fog.
       Default 1000: light scattered beyond it is below `sigma_s * I / extent` and negligible for the shipped scenes.
+    - `spectral_mis`: static; sample distances with one-sample spectral MIS over the three channels (default True,
+      module docstring); False samples every channel at the smallest one's rate (`sampling_extinction`, the former
+      scheme, kept for the variance comparison of docs/results/chromatic.md). Equal for grey media.
     """
 
     sigma_t: Float[Array, "3"] = eqx.field(converter=rgb)
     albedo: Float[Array, "3"] = eqx.field(converter=rgb)
     phase: AbstractPhaseFunction
     extent: float = eqx.field(static=True, default=1000.0)
+    spectral_mis: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         check_range("HomogeneousMedium", "sigma_t", self.sigma_t, 0.0)
@@ -137,18 +154,28 @@ class HomogeneousMedium(AbstractMedium):
             raise AttributeError(f"the medium's phase function is {type(self.phase).__name__}, which has no g")
         return self.phase.g
 
-    def sample_free_flight(self, o, d, s, ends_on_surface, active, u) -> FlightSample:
-        sh = sampling_extinction(self.sigma_t)
-        q, log1mq = branch_probability(sh, s, jnp.where(ends_on_surface, Q_MAX_SURFACE, 1.0))
+    def sample_free_flight(self, o, d, s, ends_on_surface, active, u, u_channel) -> FlightSample:
+        q_max = jnp.where(ends_on_surface, Q_MAX_SURFACE, 1.0)
+        if self.spectral_mis:
+            sh = channel_rates(self.sigma_t)
+            q, log1mq = mis_branch_probability(sh, s, q_max)
+            sh_t = pick_channel(sh, u_channel)
+        else:
+            sh_t = sampling_extinction(self.sigma_t)
+            q, log1mq = branch_probability(sh_t, s, q_max)
         q = jnp.where(active, q, 0.0)
         scattered = active & (u < q)
         x = jnp.where(scattered, u / jnp.where(scattered, q, 1.0), 0.0)  # double where: x >= 1 gives log(< 0)
-        return FlightSample(sample_truncated_exponential(x, sh, s), scattered, q, log1mq)
+        return FlightSample(sample_truncated_exponential(x, sh_t, s), scattered, q, log1mq)
 
     def free_flight_pdf(self, o, d, s, q, t):
+        if self.spectral_mis:
+            return mis_medium_pdf(t, channel_rates(self.sigma_t), s, q)
         return medium_pdf(t, sampling_extinction(self.sigma_t), s, q)
 
     def collision_weight(self, sampler, o, d, s, q, t):
+        if sampler.spectral_mis:
+            return mis_medium_weight(self.sigma_t, self.sigma_s, channel_rates(sampler.sigma_t), t, s, q)
         return medium_weight(self.sigma_t, self.sigma_s, sampling_extinction(sampler.sigma_t), t, s, q)
 
     def surface_weight(self, o, d, s, log_one_minus_q):
@@ -167,6 +194,58 @@ def sampling_extinction(sigma_t: Float[Array, "3"]) -> Float[Array, ""]:
     The smallest channel keeps every channel's weight ratio `exp(-(sigma_c - sh) t)` at most 1 (bounded variance).
     """
     return jnp.maximum(jnp.min(sigma_t), SIGMA_HAT_MIN)
+
+
+def channel_rates(sigma_t: Float[Array, "3"]) -> Float[Array, "3"]:
+    """The three channels' sampling rates of spectral MIS: `sigma_t` floored at SIGMA_HAT_MIN (1/scene unit)."""
+    return jnp.maximum(sigma_t, SIGMA_HAT_MIN)
+
+
+def mean3(x: Float[Array, "3"]) -> Float[Array, ""]:
+    """The mean of three values written as `x0 + ((x1 - x0) + (x2 - x0)) / 3`: exactly `x0` when all are equal
+    (so an RGB medium with equal channels reproduces the grey formulas bit for bit), within an ulp of the plain
+    mean otherwise (the two differences are exact or rounded once, and small against x0 where they matter)."""
+    return x[0] + ((x[1] - x[0]) + (x[2] - x[0])) / 3.0
+
+
+def log_mean3_exp(a: Float[Array, "3"]) -> Float[Array, ""]:
+    """`log(mean(exp(a)))` without overflow or underflow (max shift); exactly `a0` when all entries are equal."""
+    m = jnp.max(a)
+    return m + jnp.log(mean3(jnp.exp(a - m)))
+
+
+def pick_channel(x: Float[Array, "3"], u: Float[Array, ""]) -> Float[Array, ""]:
+    """`x[c]` for the channel `c = floor(3 u)` drawn uniformly by `u` in [0, 1) (selects, no gather)."""
+    return jnp.where(u < 1.0 / 3.0, x[0], jnp.where(u < 2.0 / 3.0, x[1], x[2]))
+
+
+def mis_branch_probability(sh: Float[Array, "3"], s, q_max=1.0) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """Spectral MIS: the medium branch's channel-averaged probability `q = mean_c q_c` (each `q_c` as
+    `branch_probability`) and `log(1 - q) = log(mean_c (1 - q_c))` from the exact per-channel logs, never
+    differentiated. For equal channels both are bitwise those of `branch_probability`."""
+    q_c, log1mq_c = branch_probability(sh, s, q_max)
+    return mean3(q_c), log_mean3_exp(log1mq_c)
+
+
+def mis_medium_pdf(t, sh: Float[Array, "3"], s, q) -> Float[Array, ""]:
+    """Density of a medium vertex at `t` under spectral MIS (1/scene unit): `q mean_c p_c(t)`, the branch
+    probability times the uniform mixture of the three truncated exponentials (`medium_pdf` per channel)."""
+    return mean3(medium_pdf(t, sh, s, q))
+
+
+def mis_medium_weight(sigma_t, sigma_s, sh: Float[Array, "3"], t, s, q) -> Float[Array, "3"]:
+    """Path weight of a medium vertex at `t` under spectral MIS: `sigma_s^j exp(-sigma_t^j t) / mis_medium_pdf(t)`
+    for each channel j (the balance heuristic over the three channel techniques), without overflow or underflow.
+
+    Written as `medium_weight` at channel j's own rate times `p_j(t) / mean_c p_c(t) = exp(-log mean_c r_jc)`,
+    `log r_jc = log(p_c(t) / p_j(t)) = log(sh_c / sh_j) - (sh_c - sh_j) t + log(m_j / m_c)` (`m = 1 - exp(-sh s)`),
+    in log space: a channel whose density is negligible at `t` gets a weight that tends to 0, never 0 * inf. For
+    equal channels every `log r` is exactly 0 and the weight is exactly `medium_weight`."""
+    m = jnp.maximum(one_minus_exp_neg(sh * s), 1e-30)  # > 0 for s > 0; the floor only guards s = 0 (log 0)
+    log_p = jnp.log(sh) - sh * t - jnp.log(m)  # log of each channel's density up to the common q
+    log_r = log_p[None, :] - log_p[:, None]  # [j, c] = log(p_c / p_j)
+    own = medium_weight(sigma_t, sigma_s, sh, t, s, q)
+    return own * jnp.exp(-jax.vmap(log_mean3_exp)(log_r))
 
 
 def branch_probability(

@@ -107,6 +107,9 @@ def _phase(med: dict) -> dict:
         return {"type": "hg", "g": float(phase["g"])}
     if phase["type"] == "rayleigh":
         return {"type": "rayleigh"}
+    if phase["type"] == "two_term_hg":  # w HG(g1) + (1 - w) HG(g2); blendphase's weight is that of phase2
+        return {"type": "blendphase", "weight": 1.0 - float(phase["w"]),
+                "phase1": {"type": "hg", "g": float(phase["g1"])}, "phase2": {"type": "hg", "g": float(phase["g2"])}}
     raise ValueError(f"to_mitsuba: no Mitsuba phase function for medium.phase.type {phase['type']!r}")
 
 

@@ -63,13 +63,15 @@ class Range:
     hi: float | str | None = None
     lo_open: bool = False
     hi_open: bool = False
+    also: float | None = None  # one more valid value outside the interval (max_depth = -1)
 
     def text(self) -> str:
         lo = "-inf" if self.lo is None else _fmt(self.lo)
         hi = "inf" if self.hi is None else (self.hi if isinstance(self.hi, str) else _fmt(self.hi))
         left = "(" if (self.lo_open or self.lo is None) else "["
         right = ")" if (self.hi_open or self.hi is None) else "]"
-        return f"{left}{lo}, {hi}{right}"
+        extra = "" if self.also is None else f", or {_fmt(self.also)}"
+        return f"{left}{lo}, {hi}{right}{extra}"
 
 
 ANY = Range()
@@ -151,13 +153,6 @@ def _perpendicular_edges(values: dict, path: str) -> None:
             f"{_fmt(v)} is not perpendicular to edge_u {_fmt(u)} (dot product {d:.6g})",
             "expected dot(edge_u, edge_v) = 0 (relative tolerance 1e-6)",
         )
-
-
-def _depth_is_positive_or_unbounded(values: dict, path: str) -> None:
-    """`max_depth` >= 1, or -1 for no limit (Russian roulette after `rr_depth`), as in Mitsuba."""
-    if values["max_depth"] == 0:
-        raise _Invalid(_join(path, "max_depth"), "0 is not a path length",
-                       "expected an integer >= 1, or -1 for paths of any length")
 
 
 def _up_not_parallel(values: dict, path: str) -> None:
@@ -290,6 +285,18 @@ CAMERA = Section(
 PHASES = {
     "hg": Section({"g": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True))}, build=_make("HenyeyGreenstein")),
     "rayleigh": Section({}, build=_make("Rayleigh")),
+    "two_term_hg": Section(
+        {"g1": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True)),
+         "g2": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True)),
+         "w": Field(NUMBER, range=Range(0, 1))},
+        build=_make("TwoTermHG"),
+    ),
+    "draine": Section(
+        {"g": Field(NUMBER, range=Range(-1, 1, lo_open=True, hi_open=True)),
+         "alpha": Field(NUMBER, range=Range(0, 1000, lo_open=True))},
+        build=_make("Draine"),
+    ),
+    "droplet": Section({"diameter": Field(NUMBER, range=Range(0, 50, lo_open=True))}, build=_make("Droplet")),
 }
 """Phase functions, selected as `"phase": {"type": ...}` in a medium; a bare `"g"` in the medium means `"hg"`."""
 
@@ -311,9 +318,9 @@ MEDIA = {
 MEDIUM = Typed(MEDIA, default="homogeneous")
 
 INTEGRATOR = Section(
-    {"max_depth": Field(INTEGER, default=8, range=Range(-1, None)), "rr_depth": Field(INTEGER, default=5, range=AT_LEAST_1),
+    {"max_depth": Field(INTEGER, default=8, range=Range(1, None, also=-1)), "rr_depth": Field(INTEGER, default=5, range=AT_LEAST_1),
      "spp": Field(INTEGER, default=64, range=AT_LEAST_1)},
-    checks=(_depth_is_positive_or_unbounded,),
+
 )
 
 SCHEMA = Section(
@@ -421,6 +428,8 @@ def _check_range(x, rng: Range, path: str, siblings: dict):
     if isinstance(hi, str):
         hi_text = f"{hi} {_fmt(siblings[hi])}"
         hi = siblings[hi]
+    if rng.also is not None and x == rng.also:
+        return x
     below = rng.lo is not None and (x < rng.lo or (rng.lo_open and x == rng.lo))
     above = hi is not None and (x > hi or (rng.hi_open and x == hi))
     if below or above:

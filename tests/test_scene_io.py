@@ -292,7 +292,7 @@ def test_defaults(tmp_path):
     path.write_text(json.dumps(data))
     sf = load_scene(path)
     assert sf.name == "minimal" and sf.spp == 64 and sf.scene.max_depth == 8
-    assert sf.data["integrator"] == {"max_depth": 8, "spp": 64} and sf.data["description"] == ""
+    assert sf.data["integrator"] == {"max_depth": 8, "rr_depth": 5, "spp": 64} and sf.data["description"] == ""
     mirror, glass = sf.scene.shapes[0].bsdf, sf.scene.shapes[1].bsdf
     assert isinstance(mirror, jaxfog.Mirror) and np.all(np.asarray(mirror.reflectance) == 1)
     assert isinstance(glass, jaxfog.Glass) and float(glass.int_ior) == 1.5 and float(glass.ext_ior) == 1.0

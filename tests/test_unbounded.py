@@ -74,7 +74,7 @@ def test_max_depth_minus_one_in_files_and_modules():
     scene = jf._scene_io.scene_from_dict(data).scene
     assert scene.max_depth == -1 and scene.rr_depth == 3
     data["integrator"] = {"max_depth": 0}
-    with pytest.raises(jf.SceneError, match="integrator.max_depth: 0 is not a path length"):
+    with pytest.raises(jf.SceneError, match=r"integrator.max_depth: 0 is out of range; valid range \[1, inf\), or -1"):
         jf._scene_io.scene_from_dict(data)
     with pytest.raises(ValueError, match="max_depth"):
         jf.Scene(camera=scene.camera, max_depth=-2)
