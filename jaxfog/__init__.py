@@ -1,7 +1,8 @@
 """jaxfog: a differentiable volumetric path tracer for homogeneous fog, in JAX.
 
 Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror`, `Glass`, `PointLight`,
-`SpotLight`, `AreaLight`, `HenyeyGreenstein`, `Rayleigh`, `HomogeneousMedium`, `Scene`) and their interfaces
+`SpotLight`, `AreaLight`, `DirectionalLight`, `HenyeyGreenstein`, `Rayleigh`, `HomogeneousMedium`, `HeightFog`,
+`Scene`) and their interfaces
 (`AbstractBSDF`, `AbstractLobeBSDF`, `AbstractLight`, `AbstractPointLikeLight`, `AbstractPhaseFunction`,
 `AbstractMedium`), `render` with its `SamplingOptions`, scene files
 (`load_scene`, `SceneError`) and image I/O (`write_exr`, `read_exr`, `write_png`).
@@ -22,9 +23,11 @@ from ._lights import (
     AbstractLight as AbstractLight,
     AbstractPointLikeLight as AbstractPointLikeLight,
     AreaLight as AreaLight,
+    DirectionalLight as DirectionalLight,
     PointLight as PointLight,
     SpotLight as SpotLight,
 )
+from ._height import HeightFog as HeightFog
 from ._medium import AbstractMedium as AbstractMedium, HomogeneousMedium as HomogeneousMedium
 from ._phase import (
     AbstractPhaseFunction as AbstractPhaseFunction,
