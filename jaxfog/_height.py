@@ -84,8 +84,8 @@ def log_psi(y: Float[Array, "..."]) -> Float[Array, "..."]:
 def log_one_minus_exp_neg_exp(L: Float[Array, "..."]) -> Float[Array, "..."]:
     """`log(1 - exp(-tau))` from `L = log tau` (L in [-inf, LOG_BIG]): `L + log phi(e^L)`, exact for tiny tau
     (where `1 - exp(-tau)` underflows to 0), 0 for large tau."""
-    tau = jnp.exp(jnp.minimum(L, LOG_BIG))
-    return L + log_phi(tau)
+    Lc = jnp.minimum(L, LOG_BIG)  # log(1 - exp(-e^80)) is exactly 0
+    return Lc + log_phi(jnp.exp(Lc))
 
 
 def scaled_exp(c: Float[Array, "..."], L: Float[Array, "..."]) -> Float[Array, "..."]:
