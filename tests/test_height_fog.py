@@ -452,12 +452,15 @@ SUN_CAM = CameraSpec(origin=(0.0, 0.3, 0.0), target=(0.0, 0.5, -1.0), fov=50.0, 
 def test_sun_single_scattering_matches_quadrature(stats):
     """A directional light (sun) over height fog, max_depth 2, no surfaces: every pixel matches the float64
     quadrature with the sky transmittance exp(-A/k) (32 keys x 16 spp; conftest's rules). A delta light with no
-    1/r^2: the per-key spread must be small (checked: the largest relative SE is below 5% at 16 spp)."""
+    1/r^2: no fireflies (below)."""
     ref = sun_single_scatter_reference(SUN_CAM, 3, SS_FOG)
     scene = height_fog_scene(SUN_CAM, SS_FOG, [jf.DirectionalLight(SUN_DIR, SUN_E)])
-    mean, se = stats.mean_and_se(stats.render_keys(scene, 16, seed=1502))
+    keys = stats.render_keys(scene, 16, seed=1502)
+    mean, se = stats.mean_and_se(keys)
     stats.assert_statistically_equal(mean, se, ref, label="height fog sun")
-    assert np.max(se / ref) * np.sqrt(32) < 0.3  # per-key relative spread < 30% at 16 spp: no fireflies
+    # no fireflies: the per-key relative spread is ~0.35 at 16 spp (most camera rays leave the thin fog without
+    # scattering); no key of any pixel exceeds 4x the reference (8 per-key SDs; a 1/r^2 spike would)
+    assert np.max(keys / ref) < 4.0, np.max(keys / ref)
 
 
 def test_sunlit_floor_through_absorbing_height_fog(stats):
