@@ -32,6 +32,12 @@ TRUTHS = {
     "thin_backward": ({"sigma_t": 0.25, "g": -0.3, "albedo": 0.9}, "thin fog, backward scattering"),
 }
 VIEWS = ("spot_fog", "spot_fog_low")
+HEIGHT_TRUTHS = {
+    "height_mid": ({"sigma_0": 0.6, "height_scale": 0.7, "g": 0.5}, "height fog: a layer a bit denser and thinner"
+                   " than the scene files' (sigma_0 0.5, H 0.8)"),
+}
+HEIGHT_VIEWS = ("height_fog_ground", "height_fog_above")
+"""Height-fog targets (issue 15): the view along the ground and the view from above pin H together."""
 
 
 def main(argv=None) -> int:
@@ -48,8 +54,10 @@ def main(argv=None) -> int:
     manifest = json.load(open(manifest_path)) if os.path.exists(manifest_path) else {"targets": []}
     done = {t["file"]: t for t in manifest["targets"]}
     seed = 10_000
-    for tname, (truth, desc) in TRUTHS.items():
-        for view in VIEWS:
+    groups = [(name, value, VIEWS) for name, value in TRUTHS.items()]
+    groups += [(name, value, HEIGHT_VIEWS) for name, value in HEIGHT_TRUTHS.items()]
+    for tname, (truth, desc), views in groups:
+        for view in views:
             seed += 1
             if args.only and tname not in args.only:
                 continue

@@ -10,6 +10,9 @@
 | `albedo[r]`, `albedo[g]`, `albedo[b]` | one channel of the albedo (`albedo:rgb`: all three) | `logit` |
 | `g1`, `g2`, `w` | two-term HG's lobes in (-1, 1) and the first lobe's weight in (0, 1) | `atanh`, `atanh`, `logit` |
 | `diameter` | fog-droplet diameter in µm, kept in (5, 50) (one smooth range of the fits) | `logit((d - 5) / 45)` |
+| `sigma_0` | height fog: extinction at the base height, 1/scene unit, all channels | `log sigma_0` |
+| `height_scale` | height fog: scale height H, scene units | `log H` |
+| `base_height` | height fog: base height h_0, scene units (degenerate with sigma_0) | `h_0` |
 
 Each parameter is a `ParamSpec` in `SPECS`: a `Transform` to the unconstrained coordinate and `get` / `set` on a
 scene; parameters of the medium or its phase function are made with `medium_param`.
@@ -157,6 +160,11 @@ SPECS = {
     "g": medium_param("g", ATANH, -1.0, 1.0),
     "albedo": medium_param("albedo", LOGIT, 0.0, 1.0),
     "intensity": ParamSpec("intensity", LOG, 0.0, np.inf, "W/sr", _get_intensity, _set_intensity),
+    # exponential height fog (jaxfog.HeightFog); sigma_0 and base_height enter only as sigma_0 exp(h_0 / H)
+    "sigma_0": medium_param("sigma_0", LOG, 0.0, np.inf, "1/unit"),
+    "height_scale": medium_param("height_scale", LOG, 0.0, np.inf, "unit"),
+    "base_height": medium_param("base_height", Transform(lambda x: x, lambda u: u, np.ones_like), -np.inf, np.inf,
+                                "unit"),
 }
 """Every fit parameter by name. A model adds its parameters here (e.g. with `medium_param`)."""
 

@@ -1,7 +1,8 @@
 """jaxfog: a differentiable volumetric path tracer for homogeneous fog, in JAX.
 
 Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror`, `Glass`, `PointLight`,
-`SpotLight`, `AreaLight`, `HenyeyGreenstein`, `Rayleigh`, `TwoTermHG`, `Draine`, `Droplet`, `HomogeneousMedium`, `Scene`) and their interfaces
+`SpotLight`, `AreaLight`, `DirectionalLight`, `HenyeyGreenstein`, `Rayleigh`, `TwoTermHG`, `Draine`, `Droplet`,
+`HomogeneousMedium`, `HeightFog`, `Scene`) and their interfaces
 (`AbstractBSDF`, `AbstractLobeBSDF`, `AbstractLight`, `AbstractPointLikeLight`, `AbstractPhaseFunction`,
 `AbstractMedium`), `render` with its `SamplingOptions`, scene files
 (`load_scene`, `SceneError`), image I/O (`write_exr`, `read_exr`, `write_png`) and the same scene in Mitsuba 3
@@ -23,9 +24,11 @@ from ._lights import (
     AbstractLight as AbstractLight,
     AbstractPointLikeLight as AbstractPointLikeLight,
     AreaLight as AreaLight,
+    DirectionalLight as DirectionalLight,
     PointLight as PointLight,
     SpotLight as SpotLight,
 )
+from ._height import HeightFog as HeightFog
 from ._medium import AbstractMedium as AbstractMedium, HomogeneousMedium as HomogeneousMedium
 from ._mitsuba import render_mitsuba as render_mitsuba, to_mitsuba as to_mitsuba
 from ._phase import (

@@ -231,3 +231,25 @@ def spot_cone_interval(position, axis, cutoff_deg, o, d):
     t1_pos = jnp.where(disc >= 0, jnp.where(da > 0, inf, lo), jnp.where(wa >= 0, inf, -inf))
     neg = A < 0
     return jnp.where(neg, t0_neg, t0_pos), jnp.where(neg, t1_neg, t1_pos)
+
+
+class DirectionalLight(AbstractLight):
+    """A distant light (the sun; Mitsuba `directional`): unit `direction` in which the light travels, and the
+    `irradiance` E (W/m^2, RGB >= 0) it delivers on a surface facing it. A delta light, reached by next-event
+    estimation only: `sample_li` returns `wi = -direction`, `dist = inf` (the shadow ray is blocked by any surface
+    along it; the medium's transmittance is taken to infinity) and `value = E`, with no 1/r^2."""
+
+    direction: Float[Array, "3"] = eqx.field(converter=lambda v: safe_normalize(vec3(v)))
+    irradiance: Float[Array, "3"] = eqx.field(converter=rgb)
+    is_delta: ClassVar[bool] = True
+    n_dims: ClassVar[int] = 0
+
+    def __check_init__(self):
+        check_nonzero("DirectionalLight", "direction", self.direction)
+        check_range("DirectionalLight", "irradiance", self.irradiance, 0.0)
+
+    def sample_li(self, p, u=None) -> LightSample:
+        return LightSample(-self.direction, jnp.float32(jnp.inf), self.irradiance, jnp.float32(1.0))
+
+    def pdf_li(self, p, wi, dist):
+        return jnp.float32(0.0)

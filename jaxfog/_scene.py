@@ -30,11 +30,11 @@ class Scene(eqx.Module):
     """Everything the renderer needs.
 
     **Fields:** `camera`; `shapes`: tuple of `Sphere`/`Rectangle`; `lights`: tuple of lights (`PointLight`,
-    `SpotLight`, `AreaLight`); `medium`: a medium (`HomogeneousMedium`) or None (no fog: no medium code is
-    compiled); `max_depth`: static int >= 1, the longest path in segments from the camera to a light, the
-    light-sampling segment included (docs/conventions.md; 8 is the default, 2 is single scattering), or -1 for paths
-    of any length, ended by Russian roulette from the `rr_depth`-th vertex on (static int >= 1, default 5, as in
-    Mitsuba; fixed depths use no Russian roulette).
+    `SpotLight`, `AreaLight`, `DirectionalLight`); `medium`: a medium (`HomogeneousMedium`, `HeightFog`) or None
+    (no fog: no medium code is compiled); `max_depth`: static int >= 1, the longest path in segments from the camera
+    to a light, the light-sampling segment included (docs/conventions.md; 8 is the default, 2 is single scattering),
+    or -1 for paths of any length, ended by Russian roulette from the `rr_depth`-th vertex on (static int >= 1,
+    default 5, as in Mitsuba; fixed depths use no Russian roulette).
     """
 
     camera: Camera
@@ -57,13 +57,13 @@ class Scene(eqx.Module):
                 raise TypeError(f"a shape's bsdf must be a BSDF (Diffuse, Mirror, Glass), got {type(s.bsdf).__name__}")
         for light in self.lights:
             if not isinstance(light, AbstractLight):
-                raise TypeError(f"lights must be lights (PointLight, SpotLight, AreaLight), got {type(light).__name__}")
+                raise TypeError(f"lights must be lights (PointLight, SpotLight, AreaLight, DirectionalLight), got {type(light).__name__}")
         if self.medium is not None and not isinstance(self.medium, AbstractMedium):
-            raise TypeError(f"medium must be a medium (HomogeneousMedium) or None, got {type(self.medium).__name__}")
+            raise TypeError(f"medium must be a medium (HomogeneousMedium, HeightFog) or None, got {type(self.medium).__name__}")
 
     @property
     def delta_lights(self) -> tuple:
-        """Lights reached by next-event estimation only (point, spot)."""
+        """Lights reached by next-event estimation only (point, spot, directional)."""
         return tuple(lt for lt in self.lights if lt.is_delta)
 
     @property

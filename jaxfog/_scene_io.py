@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
 
 from ._bsdf import Glass, Mirror
+from ._height import HeightFog
 from ._lights import SPOT_CUTOFF_DEFAULT, spot_beam_width_default
 from ._medium import HomogeneousMedium
 
@@ -205,6 +206,18 @@ def _build_homogeneous(sigma_t, albedo, g, phase, extent):
     return HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=phase, extent=float(extent))
 
 
+def _build_height(sigma_0, height_scale, base_height, albedo, g, phase, up, extent):
+    import jax.numpy as jnp
+
+    from ._height import HeightFog
+    from ._phase import HenyeyGreenstein
+
+    if phase is None:
+        phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
+    return HeightFog(sigma_0=sigma_0, height_scale=height_scale, base_height=base_height, albedo=albedo, phase=phase,
+                     up=up, extent=float(extent))
+
+
 def _phase_or_g(values: dict, path: str) -> None:
     """A medium gives its phase function either as `phase` or, for Henyey–Greenstein, as the shorthand `g`."""
     if (values["g"] is None) == (values["phase"] is None):
@@ -267,6 +280,10 @@ LIGHTS = {
         checks=(_perpendicular_edges,),
         build=_make("AreaLight"),
     ),
+    "directional": Section(
+        {"direction": Field(VEC3, nonzero=True), "irradiance": Field(RGB, range=NON_NEGATIVE)},
+        build=_make("DirectionalLight"),
+    ),
 }
 
 CAMERA = Section(
@@ -311,6 +328,20 @@ MEDIA = {
         },
         checks=(_phase_or_g,),
         build=_build_homogeneous,
+    ),
+    "height": Section(
+        {
+            "sigma_0": Field(RGB, range=NON_NEGATIVE),
+            "height_scale": Field(NUMBER, range=POSITIVE),
+            "base_height": Field(NUMBER, default=float(_module_default(HeightFog, "base_height"))),
+            "albedo": Field(RGB, range=UNIT),
+            "g": Field(NUMBER, default=None, range=Range(-1, 1, lo_open=True, hi_open=True)),
+            "phase": Field(Typed(PHASES), default=None),
+            "up": Field(VEC3, default=list(_module_default(HeightFog, "up")), nonzero=True),
+            "extent": Field(NUMBER, default=_module_default(HeightFog, "extent"), range=POSITIVE),
+        },
+        checks=(_phase_or_g,),
+        build=_build_height,
     ),
 }
 """Media, selected by the medium's `"type"` (default `"homogeneous"`)."""

@@ -391,7 +391,9 @@ def test_spot_fog_variants_differ_only_where_stated(name, changes):
 def test_every_shipped_scene_loads(path):
     sf = load_scene(path)
     assert sf.name == path.stem and sf.data["description"].strip()
-    assert (sf.scene.camera.width, sf.scene.camera.height, sf.spp) == (128, 128, 64)
+    # the height-fog fitting views are small on purpose (32 x 32 targets, fitted at 8 x 8)
+    size = 32 if path.stem in ("height_fog_ground", "height_fog_above") else 128
+    assert (sf.scene.camera.width, sf.scene.camera.height, sf.spp) == (size, size, 64)
 
 
 def test_load_scene_builds_the_same_modules_as_the_python_api():
