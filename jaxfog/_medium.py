@@ -42,9 +42,10 @@ import equinox as eqx
 from equinox import AbstractClassVar, AbstractVar
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._fields import check_range, rgb
+from ._fields import check_range, concrete, rgb
 from ._math import finite_or, one_minus_exp_neg
 from ._phase import AbstractPhaseFunction, HenyeyGreenstein
 from ._sampling import sample_truncated_exponential
@@ -123,9 +124,12 @@ class HomogeneousMedium(AbstractMedium):
     - `phase`: the phase function (any `AbstractPhaseFunction`; `HenyeyGreenstein(g)` in the shipped scenes).
     - `extent`: static; a ray that travels this far (scene units) without meeting a surface leaves the fog.
       Default 1000: light scattered beyond it is below `sigma_s * I / extent` and negligible for the shipped scenes.
-    - `spectral_mis`: static; sample distances with one-sample spectral MIS over the three channels (default True,
-      module docstring); False samples every channel at the smallest one's rate (`sampling_extinction`, the former
-      scheme, kept for the variance comparison of docs/results/chromatic.md). Equal for grey media.
+    - `spectral_mis`: static; sample distances with one-sample spectral MIS over the three channels (module
+      docstring); False samples every channel at the smallest one's rate (`sampling_extinction`, the former scheme,
+      kept for the variance comparison of docs/results/chromatic.md). Default (None): MIS unless `sigma_t` is grey
+      (all channels equal) when the medium is built, where the two schemes sample the same distances and the
+      scalar one costs one channel's pdf instead of three. (A grey medium built inside `jit`, with traced values,
+      keeps MIS.)
     """
 
     sigma_t: Float[Array, "3"] = eqx.field(converter=rgb)
@@ -133,6 +137,16 @@ class HomogeneousMedium(AbstractMedium):
     phase: AbstractPhaseFunction
     extent: float = eqx.field(static=True, default=1000.0)
     spectral_mis: bool = eqx.field(static=True, default=True)
+
+    def __init__(self, sigma_t, albedo, phase, extent=1000.0, spectral_mis=None):
+        self.sigma_t = sigma_t
+        self.albedo = albedo
+        self.phase = phase
+        self.extent = extent
+        if spectral_mis is None:
+            values = concrete(rgb(sigma_t))
+            spectral_mis = values is None or not bool(np.all(values == values[0]))
+        self.spectral_mis = bool(spectral_mis)
 
     def __check_init__(self):
         check_range("HomogeneousMedium", "sigma_t", self.sigma_t, 0.0)
