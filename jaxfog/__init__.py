@@ -2,7 +2,8 @@
 
 Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror`, `Glass`, `PointLight`,
 `SpotLight`, `AreaLight`, `HenyeyGreenstein`, `HomogeneousMedium`, `Scene`), `render`, scene files
-(`load_scene`, `SceneError`) and image I/O (`write_exr`, `read_exr`, `write_png`).
+(`load_scene`, `SceneError`), image I/O (`write_exr`, `read_exr`, `write_png`), `check_finite(image)` and the
+size limits' `LimitError`.
 """
 
 from ._bsdf import AbstractBSDF as AbstractBSDF, Diffuse as Diffuse, Glass as Glass, Mirror as Mirror
@@ -21,5 +22,6 @@ from ._render import render as render
 from ._scene import Scene as Scene
 from ._scene_io import SceneError as SceneError, load_scene as load_scene
 from ._shapes import Rectangle as Rectangle, Sphere as Sphere
+from ._validate import LimitError as LimitError, check_finite as check_finite
 
 __version__ = "0.1.0"

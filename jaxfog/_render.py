@@ -21,6 +21,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from ._integrator import ESTIMATORS, Options, make_proposal, n_dims, n_iterations, trace_path
 from ._random import uniforms
 from ._scene import Scene, pack
+from ._validate import _check_render_args
 
 DEFAULT_BATCH_PATHS = 1 << 16
 """Paths traced per compiled call (a multiple of the pixel count is used); bounds memory (~1 KiB per path)."""
@@ -148,6 +149,9 @@ def render(
 
     Differentiable with `jax.grad`, `jax.jvp`, `jax.jacfwd` with respect to the scene's array fields.
     """
+    _check_render_args(scene, key, spp, estimator=estimator, proposal=proposal, equiangular=equiangular,
+                       light_lobe=light_lobe, distance_mix=distance_mix, batch_paths=batch_paths,
+                       chunk_paths=chunk_paths, devices=devices, progress=progress)
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
     if not isinstance(spp, int) or spp < 1:
