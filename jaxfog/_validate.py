@@ -51,7 +51,7 @@ def check_size(width: int, height: int, spp: int, max_depth: int, *, force: bool
     `override`: how the message says to lift the limit (default: the environment variable)."""
     if limits_lifted(force):
         return
-    n = dict(width="camera.width", height="camera.height", spp="spp", max_depth="max_depth", **(names or {}))
+    n = {"width": "camera.width", "height": "camera.height", "spp": "spp", "max_depth": "max_depth", **(names or {})}
     how = override or f"set {NO_LIMITS_ENV}=1 to lift the limit"
     for key, value in (("width", width), ("height", height)):
         if value > MAX_SIDE:
