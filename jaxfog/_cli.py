@@ -241,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         return e.code if isinstance(e.code, int) else EXIT_USAGE
     from jaxfog._devices import use_cpu_cores
 
-    use_cpu_cores()  # every core as a JAX device (does nothing once JAX has started, e.g. under pytest)
+    use_cpu_cores()  # every core as a JAX device (warns if JAX has already started with another count)
     from ._validate import LimitError
 
     try:
