@@ -45,7 +45,7 @@ def _seed(text: str) -> int:
     from jaxfog._validate import check_seed
 
     try:
-        return check_seed(int(text), "--seed")
+        return check_seed(int(text))
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"expected an integer in [0, 4294967295], got {text!r}"
                                          if "invalid literal" in str(e) else str(e)) from None

@@ -170,8 +170,8 @@ FIT_ROWS = [
     # (id, argv with {names} for the fixture's files, substrings of the message); every row exits 2
     ("init for a parameter not fitted", ["{scene}", "{good}", "--fit", "sigma_t", "g", "--init", "albedo=0.5"],
      ["--init albedo=0.5: not in --fit (sigma_t g)"]),
-    ("negative seed", ["{scene}", "{good}", "--seed", "-1"], ["--seed -1 is out of range", "[0, 4294967295]"]),
-    ("seed 10^30", ["{scene}", "{good}", "--seed", str(10**30)], [f"--seed {10**30} is out of range"]),
+    ("negative seed", ["{scene}", "{good}", "--seed", "-1"], ["argument --seed: seed -1 is out of range", "[0, 4294967295]"]),
+    ("seed 10^30", ["{scene}", "{good}", "--seed", str(10**30)], [f"argument --seed: seed {10**30} is out of range"]),
     ("unwritable --out", ["{scene}", "{good}", "--out", "/proc/x/r.json"],
      ["--out /proc/x/r.json: cannot create directory /proc/x"]),
     ("--out is the scene", ["{scene}", "{good}", "--out", "{scene}"], ["would overwrite the input", "scene.json"]),
