@@ -53,8 +53,13 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
             f"{name}: target is {target.shape[1]}x{target.shape[0]} px but the scene's camera is "
             f"{cam.width}x{cam.height} px"
         )
-    if not np.all(np.isfinite(target)):
-        raise FitError(f"{name}: target has non-finite pixels")
+    try:
+        jaxfog.check_finite(target, f"{name}: target")
+    except FloatingPointError as e:
+        raise FitError(str(e)) from None
+    if np.any(target < 0):
+        raise FitError(f"{name}: target has {int(np.sum(target < 0))} negative values (smallest {float(target.min()):.4g});"
+                       f" expected linear radiance >= 0")
     if downscale < 1 or cam.width % downscale or cam.height % downscale:
         raise FitError(f"downscale {downscale} must be >= 1 and divide the image size {cam.width}x{cam.height}")
     import equinox as eqx

@@ -21,6 +21,8 @@ import time
 import numpy as np
 
 from .core import FitConfig, make_view, fit_views
+from jaxfog._validate import LimitError, check_size
+
 from .params import SPECS, FitError, check_names, check_value, scene_values
 
 
@@ -37,6 +39,79 @@ def parse_assignments(items, what="--init") -> dict:
         except ValueError as e:
             raise FitError(f"{what} {item!r}: {e}") from None
     return out
+
+
+def _seed(text: str) -> int:
+    from jaxfog._validate import check_seed
+
+    try:
+        return check_seed(int(text))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 4294967295], got {text!r}"
+                                         if "invalid literal" in str(e) else str(e)) from None
+
+
+def check_outputs(out: str, inputs) -> list[str]:
+    """The files the fit will write (RESULT.json and the two PNGs beside it), checked before any work: `.json`, not a
+    directory, none of them one of the `inputs`, and a directory that exists (or can be made) and is writable.
+    Returns the three paths."""
+    if not out.lower().endswith(".json"):
+        raise FitError(f"--out must name a .json file, got {out!r}")
+    base = os.path.splitext(out)[0]
+    paths = [out, base + ".png", base + "_convergence.png"]
+    for p in paths:
+        if os.path.isdir(p):
+            raise FitError(f"--out {out}: {p} is a directory")
+        for q in inputs:
+            if os.path.abspath(p) == os.path.abspath(q) or (os.path.exists(p) and os.path.samefile(p, q)):
+                raise FitError(f"--out {out}: would overwrite the input {q}")
+    directory = os.path.dirname(os.path.abspath(out))
+    try:
+        os.makedirs(directory, exist_ok=True)
+    except OSError as e:
+        raise FitError(f"--out {out}: cannot create directory {directory}: {e.strerror or e}") from None
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise FitError(f"--out {out}: directory {directory} is not writable")
+    return paths
+
+
+PLAUSIBLE_BRIGHTNESS = 30.0
+"""A target whose mean is more than this factor brighter or darker than a quick render of the initial guess is
+refused: the fit's parameters change the mean by far less over their useful range (the shipped targets: within 3x)."""
+
+
+def check_target_brightness(view, scene, spp: int = 4, seed: int = 12345) -> None:
+    """Refuse a target that no parameters near the initial guess could explain: black (all zero), or with a mean
+    more than `PLAUSIBLE_BRIGHTNESS` times brighter or darker than a quick `spp`-sample render of `scene` (the
+    initial guess at the fit resolution)."""
+    import jax
+
+    import jaxfog
+
+    t = float(np.mean(view.target))
+    if not t > 0.0:
+        raise FitError(f"{view.name}: target is black (every pixel 0): nothing to fit; a target rendered with the "
+                       f"light off, or the wrong file?")
+    img = jaxfog.check_finite(np.asarray(jaxfog.render(scene, jax.random.key(seed), spp)),
+                              f"{view.name}: render of the initial guess")
+    m = float(np.mean(img))
+    if m > 0.0 and not (1.0 / PLAUSIBLE_BRIGHTNESS <= t / m <= PLAUSIBLE_BRIGHTNESS):
+        raise FitError(f"{view.name}: target mean {t:.4g} is {t / m:.3g}x the mean {m:.4g} of a {spp}-spp render of "
+                       f"the initial guess; plausible range [1/{PLAUSIBLE_BRIGHTNESS:g}, {PLAUSIBLE_BRIGHTNESS:g}]x: "
+                       f"a target of another scene, or at another exposure?")
+
+
+def json_safe(x):
+    """`x` with every non-finite float replaced by None (JSON has no NaN or Infinity)."""
+    if isinstance(x, float):
+        return x if np.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if isinstance(x, np.generic):
+        return json_safe(x.item())
+    return x
 
 
 def pair_inputs(inputs) -> list[tuple[str, str]]:
@@ -79,7 +154,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fit", nargs="+", default=["sigma_t", "g"], help=f"parameters to fit: {', '.join(SPECS)}")
     p.add_argument("--init", nargs="*", default=[], help="starting values, e.g. sigma_t=0.3 g=0.0 (default: the scene file's)")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel of each render inside the solver (default 256)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the fit's keys (targets use other seeds)")
+    p.add_argument("--seed", type=_seed, default=0,
+                   help="seed of the fit's keys, in [0, 4294967295] (targets use other seeds)")
     p.add_argument("--solver", choices=["lm", "bfgs"], default="lm", help="Levenberg–Marquardt (default) or BFGS")
     p.add_argument("--downscale", type=int, default=None,
                    help="fit at 1/F of the target resolution (box-pooled target; default: the largest F that divides "
@@ -101,13 +177,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2; argparse has printed the message)
+        return e.code if isinstance(e.code, int) else 2
     from jaxfog._devices import use_cpu_cores
 
-    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
+    use_cpu_cores()  # every core as a JAX device (warns if JAX has already started with another count)
     try:
         return _run(args)
-    except FitError as e:
+    except (FitError, LimitError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
 
@@ -123,10 +202,15 @@ def _run(args) -> int:
         raise FitError(f"--value-spp-factor must be >= 1, got {args.value_spp_factor}")
     if args.rounds < 1 or args.repeats < 1:
         raise FitError(f"--rounds and --repeats must be >= 1, got {args.rounds} and {args.repeats}")
-    if not args.out.lower().endswith(".json"):
-        raise FitError(f"--out must name a .json file, got {args.out!r}")
+    not_fitted = sorted(set(init_given) - set(names))
+    if not_fitted:
+        raise FitError(f"--init {' '.join(f'{n}={init_given[n]:g}' for n in not_fitted)}: not in --fit "
+                       f"({' '.join(names)}); add it to --fit, or leave it out of --init (an unfitted parameter "
+                       f"keeps the scene file's value)")
+    pairs = pair_inputs(args.inputs)
+    check_outputs(args.out, [p for pair in pairs for p in pair])
     views, truths, scenes_full, targets_full = [], [], [], []
-    for scene_path, target_path in pair_inputs(args.inputs):
+    for scene_path, target_path in pairs:
         if not os.path.exists(target_path):
             raise FitError(f"target {target_path!r} not found")
         try:
@@ -141,6 +225,12 @@ def _run(args) -> int:
         if args.downscale is None:
             args.downscale = auto_downscale(sf.scene.camera.width, sf.scene.camera.height)
         name = os.path.basename(target_path)
+        cam = sf.scene.camera
+        value_spp = args.spp * (args.value_spp_factor or FitConfig.value_spp_factor)
+        check_size(cam.width // max(args.downscale, 1), cam.height // max(args.downscale, 1), value_spp,
+                   sf.scene.max_depth, names={"width": f"{os.path.basename(scene_path)}: camera.width / --downscale",
+                                              "height": "camera.height / --downscale",
+                                              "spp": "--spp x --value-spp-factor", "max_depth": "integrator.max_depth"})
         views.append(make_view(sf.scene, target, name, args.downscale, spp_t))
         scenes_full.append(sf.scene)
         targets_full.append(target)
@@ -150,6 +240,10 @@ def _run(args) -> int:
     for n in names:
         if init[n] is None:
             raise FitError(f"cannot fit {n}: the scene has no such value")
+    from .params import apply
+
+    for v in views:  # before the fit: a black target, or one of another brightness, cannot be fitted
+        check_target_brightness(v, apply(v.scene, init))
     extra = {} if args.value_spp_factor is None else {"value_spp_factor": args.value_spp_factor}
     if args.steps == "lm":
         extra["average_jacobians"] = 0
@@ -165,7 +259,6 @@ def _run(args) -> int:
     payload = result.to_json()
     payload.update({"targets": [v.name for v in views], "truth": truth, "spp": args.spp, "seed": args.seed,
                     "solver": args.solver, "downscale": args.downscale})
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     write_json_atomic(args.out, payload)
     base = os.path.splitext(args.out)[0]
     from .plots import plot_convergence, plot_comparison
@@ -205,7 +298,7 @@ def write_json_atomic(path, payload) -> None:
     tmp = f"{path}.tmp-{os.getpid()}"
     try:
         with open(tmp, "w") as f:
-            json.dump(payload, f, indent=2)
+            json.dump(json_safe(payload), f, indent=2, allow_nan=False)  # NaN (unknown) is written as null
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

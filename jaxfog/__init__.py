@@ -5,8 +5,9 @@ Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror
 `HomogeneousMedium`, `HeightFog`, `Scene`) and their interfaces
 (`AbstractBSDF`, `AbstractLobeBSDF`, `AbstractLight`, `AbstractPointLikeLight`, `AbstractPhaseFunction`,
 `AbstractMedium`), `render` with its `SamplingOptions`, scene files
-(`load_scene`, `SceneError`), image I/O (`write_exr`, `read_exr`, `write_png`) and the same scene in Mitsuba 3
-(`to_mitsuba`, and `render_mitsuba` with the optional extra `compare`).
+(`load_scene`, `SceneError`), image I/O (`write_exr`, `read_exr`, `write_png`), `check_finite(image)`, the size
+limits' `LimitError`, and the same scene in Mitsuba 3 (`to_mitsuba`, and `render_mitsuba` with the optional extra
+`compare`).
 """
 
 from ._bsdf import (
@@ -43,5 +44,6 @@ from ._render import render as render
 from ._scene import Scene as Scene
 from ._scene_io import SceneError as SceneError, load_scene as load_scene
 from ._shapes import Rectangle as Rectangle, Sphere as Sphere
+from ._validate import LimitError as LimitError, check_finite as check_finite
 
 __version__ = "0.1.0"

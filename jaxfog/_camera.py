@@ -19,7 +19,7 @@ def _scalar(x) -> Float[Array, ""]:
 
 class Camera(eqx.Module):
     """Pinhole camera at `origin` looking at `target` with `up` (scene units), horizontal `fov` in degrees (0, 180),
-    image `width` x `height` pixels (static: a new resolution compiles a new program)."""
+    image `width` x `height` pixels, integers >= 1 (static: a new resolution compiles a new program)."""
 
     origin: Float[Array, "3"] = eqx.field(converter=_vec3)
     target: Float[Array, "3"] = eqx.field(converter=_vec3)
@@ -27,6 +27,12 @@ class Camera(eqx.Module):
     fov: Float[Array, ""] = eqx.field(converter=_scalar)
     width: int = eqx.field(static=True)
     height: int = eqx.field(static=True)
+
+    def __check_init__(self):
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"Camera: {name} must be a positive integer (pixels), got {v!r}")
 
     def generate_ray(self, pixel: Float[Array, "2"]) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
         """Ray `(origin, unit direction)` through the film position `pixel = (x, y)` in pixels, x to the right and y

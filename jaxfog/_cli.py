@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -58,29 +59,72 @@ def _float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
 
 
+def _seed(text: str) -> int:
+    """A seed in [0, 2^32) (`_validate.check_seed`): outside it, seeds would repeat other seeds' images."""
+    from ._validate import check_seed
+
+    try:
+        return check_seed(int(text))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 4294967295], got {text!r}"
+                                         if "invalid literal" in str(e) else str(e)) from None
+
+
+EXPOSURE_RANGE = (-100.0, 100.0)
+"""Preview exposure in stops: 2**100 is far beyond any useful preview, and stays finite in float32."""
+
+
+def _exposure(text: str) -> float:
+    value = _float(text)
+    lo, hi = EXPOSURE_RANGE
+    if not (math.isfinite(value) and lo <= value <= hi):
+        raise argparse.ArgumentTypeError(f"{text} is out of range; valid range [{lo:g}, {hi:g}] stops")
+    return value
+
+
 # ------------------------------------------------------------------------------------------------------------ render
 def _configure_render(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", metavar="SCENE.json", help="scene file (format: notes/ARCHITECTURE.md)")
     p.add_argument("-o", "--output", metavar="OUT.exr", required=True, help="linear float32 OpenEXR to write")
     p.add_argument("--spp", type=_positive_int, metavar="N",
                    help="samples per pixel (default: the file's integrator.spp)")
-    p.add_argument("--seed", type=_int, default=0, metavar="S", help="PRNG seed (default 0); same seed, same image")
+    p.add_argument("--seed", type=_seed, default=0, metavar="S",
+                   help="PRNG seed in [0, 4294967295] (default 0); same seed, same image")
     p.add_argument("--png", metavar="PREVIEW.png", help="also write an 8-bit sRGB preview")
-    p.add_argument("--exposure", type=_float, default=0.0, metavar="E",
-                   help="preview exposure in stops: the PNG shows radiance * 2**E (default 0)")
+    p.add_argument("--exposure", type=_exposure, default=0.0, metavar="E",
+                   help="preview exposure in stops, in [-100, 100]: the PNG shows radiance * 2**E (default 0)")
     p.add_argument("--estimator", choices=("detached", "reparam"), default="detached",
                    help="derivative estimator compiled into the renderer (same image in expectation; default detached)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene value, e.g. --set medium.sigma_t=0.8 --set camera.width=32 (repeatable)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--force", action="store_true",
+                   help="render beyond the size limits (each side <= 16384 px, <= 4096 x 4096 px, spp <= 2^20, "
+                        "max_depth <= 1024, <= 1e11 path segments; also lifted by JAXFOG_NO_LIMITS=1)")
 
 
-def _check_output(path: str, ext: str, option: str) -> None:
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.abspath(a) == os.path.abspath(b)
+
+
+def _check_output(path: str, ext: str, option: str, inputs=()) -> None:
+    """Refuse, before any work, an output that cannot be written or would destroy something: a wrong extension, a
+    directory, one of the `inputs` (e.g. the scene file), a missing or unwritable directory."""
     if not path.lower().endswith(ext):
         raise CliError(f"{option} {path}: expected a {ext} file name")
+    if os.path.isdir(path):
+        raise CliError(f"{option} {path}: is a directory; expected a {ext} file name")
+    for other_option, other in inputs:
+        if other and _same_file(path, other):
+            raise CliError(f"{option} {path}: is also {other_option}; it would be overwritten")
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
         raise CliError(f"{option} {path}: directory {directory} does not exist")
+    if not os.access(directory, os.W_OK | os.X_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+        raise CliError(f"{option} {path}: not writable (no permission to write in {directory})")
 
 
 from ._measure import CompileTimer as _CompileTimer  # noqa: E402
@@ -90,10 +134,19 @@ def _run_render(args: argparse.Namespace) -> int:
     from ._image import write_exr, write_png
     from ._scene_io import load_scene
 
-    _check_output(args.output, ".exr", "-o")
+    from ._validate import check_size
+
+    _check_output(args.output, ".exr", "-o", [("SCENE.json", args.scene)])
     if args.png:
-        _check_output(args.png, ".png", "--png")
+        _check_output(args.png, ".png", "--png", [("SCENE.json", args.scene), ("-o", args.output)])
     sf = load_scene(args.scene, args.overrides)  # validates before anything is compiled
+    spp = args.spp if args.spp is not None else sf.spp
+    base = os.path.basename(sf.path)
+    check_size(sf.scene.camera.width, sf.scene.camera.height, spp, sf.scene.max_depth, force=args.force,
+               names=dict(width=f"{base}: camera.width", height="camera.height",
+                          spp="--spp" if args.spp is not None else f"{base}: integrator.spp",
+                          max_depth=f"{base}: integrator.max_depth"),
+               override="pass --force (or set JAXFOG_NO_LIMITS=1) to render anyway")
 
     import jax
     import numpy as np
@@ -101,7 +154,6 @@ def _run_render(args: argparse.Namespace) -> int:
 
     from ._render import render
 
-    spp = args.spp if args.spp is not None else sf.spp
     cam = sf.scene.camera
     t0 = time.perf_counter()
     with tqdm(total=spp, unit="spp", desc=sf.name, disable=args.no_progress, file=sys.stderr, leave=False) as bar:
@@ -138,6 +190,14 @@ def _run_render(args: argparse.Namespace) -> int:
     print(f"wrote {', '.join(written)}")
     print(f"compile {compile_timer.seconds:.2f} s, wall {wall:.2f} s "
           f"(render {max(wall - compile_timer.seconds, 0.0):.2f} s)")
+    if n_bad:
+        from ._validate import check_finite
+
+        try:
+            check_finite(image, args.output)
+        except FloatingPointError as e:
+            raise CliError(f"{e}; the image was written for inspection, but it is not a valid render "
+                           f"(a parameter at the edge of float32?)") from None
     return 0
 
 
@@ -185,9 +245,14 @@ def main(argv: list[str] | None = None) -> int:
         return e.code if isinstance(e.code, int) else EXIT_USAGE
     from jaxfog._devices import use_cpu_cores
 
-    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
+    use_cpu_cores()  # every core as a JAX device (warns if JAX has already started with another count)
+    from ._validate import LimitError
+
     try:
         return args._run(args)
+    except LimitError as e:  # a size beyond the limits: a usage error, with the way to lift it in the message
+        print(f"jaxfog: error: {_one_line(e)}", file=sys.stderr)
+        return EXIT_USAGE
     except (SceneError, CliError, OSError) as e:  # expected failures; anything else is a bug: traceback
         print(f"jaxfog: error: {_one_line(e)}", file=sys.stderr)
         return EXIT_ERROR

@@ -10,11 +10,13 @@ calls it right after `import jaxfog`, before any JAX computation (or sets `jax_n
 from __future__ import annotations
 
 import os
+import warnings
 
 
 def use_cpu_cores(n: int | None = None) -> int:
     """Ask JAX for `n` CPU devices (default: this process's CPU count, or `$JAXFOG_CPU_DEVICES`). Must run before JAX
-    initialises its backends; afterwards it changes nothing. Returns the number of local devices JAX then has."""
+    initialises its backends; afterwards it changes nothing and warns (`RuntimeWarning`) if the device count JAX has
+    differs from `n`. Returns the number of local devices JAX then has."""
     import jax
 
     if n is None:
@@ -27,6 +29,10 @@ def use_cpu_cores(n: int | None = None) -> int:
         raise ValueError(f"number of CPU devices must be >= 1, got {n}")
     try:
         jax.config.update("jax_num_cpu_devices", int(n))
-    except RuntimeError:  # backends already initialised: keep what there is
-        pass
+    except RuntimeError:  # backends already initialised: keep what there is, and say so
+        have = jax.local_device_count()
+        if have != n:
+            warnings.warn(f"use_cpu_cores({n}): JAX has already started with {have} device(s), so this changes "
+                          f"nothing; call it right after `import jaxfog`, before any JAX computation, or set "
+                          f"JAXFOG_CPU_DEVICES / jax_num_cpu_devices before starting", RuntimeWarning, stacklevel=2)
     return jax.local_device_count()

@@ -80,12 +80,13 @@ def write_exr(path, rgb, metadata: dict | None = None) -> None:
 
 
 def read_exr(path) -> tuple[np.ndarray, dict]:
-    """Read an RGB image (normally an OpenEXR written by `write_exr`).
+    """Read an RGB OpenEXR image (normally one written by `write_exr`); any other format is refused, whatever the
+    file's name.
 
     **Returns:** `(rgb, metadata)`: float32 `(H, W, 3)` linear RGB (channels R, G, B by name; an alpha channel is
     dropped) and a dict of every *string* header attribute (what `write_exr` stored, plus the file's own string
     attributes such as `compression`). **Raises:** `FileNotFoundError`, or `ValueError` for a file that is not an
-    RGB image.
+    RGB OpenEXR image (by its content, e.g. a PNG named `.exr`).
     """
     path = os.fspath(path)
     if not os.path.exists(path):
@@ -94,6 +95,10 @@ def read_exr(path) -> tuple[np.ndarray, dict]:
     if inp is None:
         raise ValueError(f"{path}: not a readable image: {oiio.geterror()}")
     try:
+        fmt = inp.format_name()
+        if fmt != "openexr":  # OpenImageIO reads by content: a PNG renamed .exr would be read as 8-bit sRGB data
+            raise ValueError(f"{path}: the file is {fmt or 'unknown format'}, not OpenEXR; expected a linear float "
+                             f"OpenEXR image (PNG and other 8-bit formats are tonemapped previews, not data)")
         spec = inp.spec()
         names = list(spec.channelnames)
         if not all(c in names for c in "RGB"):

@@ -33,11 +33,12 @@ def uniforms(key: PRNGKeyArray, n_rows: int, n_cols: int, row0=0) -> Float[Array
     """Rows `row0 .. row0 + n_rows - 1` of the key's table of float32 uniforms in [0, 1) (multiples of 2^-24): a
     pure function of the key, the row and the column, so any block of rows can be drawn on its own.
 
-    Rows are paths (pixels), columns a path's dimensions; `n_rows` and `n_cols` at most 2^32 each, `row0` (an int or
-    a traced integer) wraps modulo 2^32. The three words keying the hash are drawn from `key` with `jax.random.bits`
+    Rows are paths (pixels), columns a path's dimensions; `n_rows` in [1, 2^32], `n_cols` in [0, 2^32] (0: an empty
+    table, for paths that draw nothing, e.g. `max_depth` 1 without area lights), `row0` (an int or a traced integer)
+    wraps modulo 2^32. The three words keying the hash are drawn from `key` with `jax.random.bits`
     (one threefry call per key)."""
-    if not (0 < n_rows <= 1 << 32 and 0 < n_cols <= 1 << 32):
-        raise ValueError(f"uniforms: n_rows={n_rows} and n_cols={n_cols} must be in [1, 2^32]")
+    if not (0 < n_rows <= 1 << 32 and 0 <= n_cols <= 1 << 32):
+        raise ValueError(f"uniforms: n_rows={n_rows} must be in [1, 2^32] and n_cols={n_cols} in [0, 2^32]")
     k = key_words(key)
     rows = jnp.asarray(row0).astype(jnp.uint32) + jnp.arange(n_rows, dtype=jnp.uint32)
     return hashed_uniforms(k, rows[:, None], jnp.arange(n_cols, dtype=jnp.uint32)[None, :])

@@ -30,6 +30,7 @@ from ._integrator import (
 )
 from ._random import hashed_uniforms, key_words, uniforms
 from ._scene import Scene, pack
+from ._validate import _check_render_args
 
 DEFAULT_BATCH_PATHS = 1 << 16
 """Paths traced per compiled call (a multiple of the pixel count is used); bounds memory (~1 KiB per path)."""
@@ -226,13 +227,9 @@ def render(
     """
     options = sampling_options(sampling, estimator=estimator, equiangular=equiangular, light_lobe=light_lobe,
                                distance_mix=distance_mix)
-    if not isinstance(spp, int) or isinstance(spp, bool) or spp < 1:
-        raise ValueError(f"spp must be a positive integer, got {spp!r}")
-    if not isinstance(chunk_paths, int) or chunk_paths < 1:
-        raise ValueError(f"chunk_paths must be a positive integer, got {chunk_paths!r}")
-    n_dev = jax.local_device_count() if devices is None else devices
-    if not isinstance(n_dev, int) or not 1 <= n_dev <= jax.local_device_count():
-        raise ValueError(f"devices must be an integer in [1, {jax.local_device_count()}], got {devices!r}")
+    _check_render_args(scene, key, spp, sampling=options, proposal=proposal, batch_paths=batch_paths,
+                       chunk_paths=chunk_paths, devices=devices, progress=progress)
+    n_dev = jax.local_device_count() if devices is None else int(devices)
     per = layers_per_batch(scene, spp, batch_paths)
     _, n_ch = n_chunks(scene, chunk_paths)
     n_items = items_per_call(scene, spp, batch_paths, chunk_paths, n_dev)

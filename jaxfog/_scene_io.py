@@ -446,12 +446,26 @@ def _check_leaf(value, kind: Kind, path: str, rng: Range, nonzero: bool, sibling
     return vec
 
 
+FLOAT32_MAX = 3.4028234663852886e38
+"""The largest finite float32: the renderer computes in float32, so a number beyond it would become infinite."""
+
+
 def _number(value, path: str, valid: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise _Invalid(path, f"got {_describe(value)}", valid)
     if not math.isfinite(value):
         raise _Invalid(path, f"{value} is not finite", valid)
+    if abs(value) > FLOAT32_MAX:
+        raise _Invalid(path, f"{value:g} is not finite in float32 (the renderer's precision; largest 3.40282e+38)",
+                       valid)
     return float(value)
+
+
+def _float32(x: float) -> float:
+    """`x` rounded to float32 (the value the renderer sees)."""
+    import struct
+
+    return struct.unpack("f", struct.pack("f", x))[0]
 
 
 def _check_range(x, rng: Range, path: str, siblings: dict):
@@ -461,14 +475,24 @@ def _check_range(x, rng: Range, path: str, siblings: dict):
         hi = siblings[hi]
     if rng.also is not None and x == rng.also:
         return x
-    below = rng.lo is not None and (x < rng.lo or (rng.lo_open and x == rng.lo))
-    above = hi is not None and (x > hi or (rng.hi_open and x == hi))
+
+    def outside(v):
+        below = rng.lo is not None and (v < rng.lo or (rng.lo_open and v == rng.lo))
+        above = hi is not None and (v > hi or (rng.hi_open and v == hi))
+        return below, above
+
+    below, above = outside(x)
     if below or above:
         if above and hi_text is not None:
             problem = f"{_fmt(x)} is larger than {hi_text}"
         else:
             problem = f"{_fmt(x)} is out of range"
         raise _Invalid(path, problem, f"valid range {rng.text()}")
+    if isinstance(x, float):  # the renderer sees the float32 value: 0.99999999 becomes 1
+        x32 = _float32(x)
+        if any(outside(x32)):
+            raise _Invalid(path, f"{x!r} rounds to {x32!r} in float32 (the renderer's precision), which is out of range",
+                           f"valid range {rng.text()}")
     return x
 
 
@@ -595,6 +619,9 @@ def load_scene(path, overrides=()) -> SceneFile:
         raise SceneError(f"{path}: scene file not found") from None
     except OSError as e:
         raise SceneError(f"{path}: cannot read scene file: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise SceneError(f"{_base(path)}: not a text file (byte 0x{e.object[e.start]:02x} at offset {e.start} is not "
+                         f"UTF-8); expected a JSON scene file") from None
     try:
         data = json.loads(text)
     except json.JSONDecodeError as e:

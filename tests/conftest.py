@@ -1,4 +1,4 @@
-"""Shared configuration, scene builders and statistical helpers for the jaxfog test suite.
+"""Configuration and fixtures of the jaxfog test suite; the shared helpers live in `tests/helpers.py`.
 
 Configuration
 - The renderer is float32 by design; `jax_enable_x64` stays off. Exact references are computed with numpy/scipy in
@@ -6,142 +6,30 @@ Configuration
 - `jax_numpy_rank_promotion = "raise"`: the library must not rely on implicit rank promotion (it passes with it).
 - Every CPU core is a JAX device (`jaxfog.use_cpu_cores()`), so renders split their sample layers across devices as
   the command-line tools do (tests/test_devices.py checks that this changes nothing but float32 rounding).
-
-Statistics (used by every render test; see `assert_statistically_equal`)
-- A render estimate is checked against a reference with per-value standard errors (SE) computed from `n_keys`
-  independent renders (different keys): SE = sample std over keys (ddof=1) / sqrt(n_keys). With n_keys = 32, each
-  z = (estimate - reference) / SE follows (approximately: the per-key means must be close to normal, so tests use
-  enough spp per key) a Student t with nu = 31 degrees of freedom: E[z^2] = nu/(nu-2) = 1.07,
-  Var[z^2] = 3 nu^2/((nu-2)(nu-4)) - E[z^2]^2 = 2.54. The checks and their false-alarm rates for an unbiased
-  renderer, with n_pix pixels (the three channels of a pixel may be fully correlated, so n_pix, not 3 n_pix, counts):
-  * every |z| <= 6.5 (P(|t_31| > 6.5) ~ 3e-7 per value: < 0.5% for the ~10^4 values the whole suite checks, with
-    room for per-key means somewhat less normal than assumed; 5.5 was measured to be hit about once per suite run);
-  * at most 3% of the values have |z| > 3 (expected 0.5%);
-  * mean(z^2) <= 1.07 + 5 sqrt(2.54 / n_pix) (5 standard deviations of the mean of n_pix values);
-  * per channel, |mean(z)| <= 4 sqrt(1.07 / n_pix) (a bias of a fraction of one SE shared by all pixels fails this).
-  The SE gets a float32 floor of 3e-5 * |reference| (rounding of float32 sums of at most a few thousand samples).
+- Tests marked `slow` are deselected by default (`pyproject.toml`); `pytest -m slow` runs them.
 """
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxfog as jf
+from helpers import (
+    FLOOR_CAMERA,
+    N_KEYS,
+    CameraSpec,
+    assert_statistically_equal,
+    hg_np,
+    make_floor,
+    mean_and_se,
+    render_keys,
+    spot_falloff_np,
+)
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jf.use_cpu_cores()  # every core a JAX device, as the command-line entry points do: renders run sharded
-
-N_KEYS = 32
-"""Independent renders per statistical estimate (t distribution with N_KEYS - 1 degrees of freedom)."""
-
-FLOAT32_REL_FLOOR = 3e-5
-
-
-# ------------------------------------------------------------------------------------------------ float64 references
-@dataclasses.dataclass(frozen=True)
-class CameraSpec:
-    """Plain-float description of a pinhole camera (conventions.md), for both the renderer and float64 references."""
-
-    origin: tuple
-    target: tuple
-    up: tuple = (0.0, 1.0, 0.0)
-    fov: float = 30.0
-    width: int = 16
-    height: int = 12
-
-    def build(self) -> jf.Camera:
-        return jf.Camera(origin=self.origin, target=self.target, up=self.up, fov=self.fov, width=self.width,
-                         height=self.height)
-
-    def rays(self, n: int = 4):
-        """Float64 rays through an n x n Gauss–Legendre grid in every pixel's square.
-
-        Returns `(origin (3,), dirs (H, W, n*n, 3) unit, weights (n*n,) summing to 1)`. Written from conventions.md:
-        fov = full horizontal field of view; pixel (row 0, col 0) is the top-left; camera +x is the image's right.
-        """
-        o = np.asarray(self.origin, np.float64)
-        f = np.asarray(self.target, np.float64) - o
-        f /= np.linalg.norm(f)
-        r = np.cross(f, np.asarray(self.up, np.float64))
-        r /= np.linalg.norm(r)
-        u = np.cross(r, f)
-        x, w = np.polynomial.legendre.leggauss(n)
-        x, w = 0.5 * (x + 1.0), 0.5 * w
-        W, H = self.width, self.height
-        px = np.arange(W)[None, :, None, None] + x[None, None, :, None]  # (1, W, n, 1)
-        py = np.arange(H)[:, None, None, None] + x[None, None, None, :]  # (H, 1, 1, n)
-        tan_half = np.tan(0.5 * np.deg2rad(self.fov))
-        sx = (2.0 * px / W - 1.0) * tan_half
-        sy = (1.0 - 2.0 * py / H) * tan_half * (H / W)
-        sx, sy = np.broadcast_arrays(sx, sy)  # (H, W, n, n)
-        d = f + sx[..., None] * r + sy[..., None] * u
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        weights = (w[:, None] * w[None, :]).reshape(-1)
-        return o, d.reshape(H, W, n * n, 3), weights
-
-
-def hg_np(cos_theta, g):
-    """Henyey–Greenstein phase function in float64 (conventions.md), as a function of cos theta."""
-    return (1.0 - g * g) / (4.0 * np.pi * (1.0 + g * g - 2.0 * g * cos_theta) ** 1.5)
-
-
-def spot_falloff_np(theta, cutoff_deg, beam_deg):
-    """conventions.md: 1 for theta <= beam, (cutoff - theta)/(cutoff - beam) between, 0 beyond (radians)."""
-    c, b = np.deg2rad(cutoff_deg), np.deg2rad(beam_deg)
-    theta = np.asarray(theta, np.float64)
-    ramp = (c - theta) / (c - b) if c > b else np.zeros_like(theta)
-    return np.where(theta <= b, 1.0, np.where(theta < c, ramp, 0.0))
-
-
-# ------------------------------------------------------------------------------------------------ rendering helpers
-def render_keys(scene: jf.Scene, spp: int, *, n_keys: int = N_KEYS, seed: int = 0, **kwargs) -> np.ndarray:
-    """`n_keys` independent renders (keys `fold_in(key(seed), k)`), as float64 numpy `(n_keys, H, W, 3)`.
-
-    `batch_paths` is set so that one compiled call covers all `spp` layers (one compilation per scene structure)."""
-    cam = scene.camera
-    kwargs.setdefault("batch_paths", cam.width * cam.height * spp)
-    base = jax.random.key(seed)
-    imgs = [jf.render(scene, jax.random.fold_in(base, k), spp, **kwargs) for k in range(n_keys)]
-    return np.asarray(jnp.stack(imgs), np.float64)
-
-
-def mean_and_se(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean over the first axis and its standard error (sample std with ddof=1 / sqrt(n))."""
-    n = samples.shape[0]
-    return samples.mean(axis=0), samples.std(axis=0, ddof=1) / np.sqrt(n)
-
-
-def assert_statistically_equal(mean, se, ref, *, label: str = "", ref_se=None, ref_atol: float = 0.0):
-    """Check an estimate `mean` with standard error `se` against `ref` (exact, or itself an estimate with `ref_se`).
-
-    `ref_atol`: a stated absolute accuracy of the reference itself, added to the SE in quadrature.
-    Thresholds and their justification: module docstring.
-    """
-    mean, se, ref = (np.asarray(x, np.float64) for x in (mean, se, ref))
-    var = se**2 + (FLOAT32_REL_FLOOR * np.abs(ref)) ** 2 + ref_atol**2 + 1e-14
-    if ref_se is not None:
-        var = var + np.asarray(ref_se, np.float64) ** 2
-    z = (mean - ref) / np.sqrt(var)
-    assert np.all(np.isfinite(mean)), f"{label}: non-finite estimate"
-    flat = np.abs(z).reshape(-1)
-    worst = np.unravel_index(np.argmax(np.abs(z)), z.shape)
-    info = (f"{label}: worst z={z[worst]:.2f} at {worst} (estimate {mean[worst]:.6g}, reference {ref[worst]:.6g}, "
-            f"se {np.sqrt(var[worst]):.3g}); mean z^2={np.mean(z**2):.3f}; frac|z|>3={np.mean(flat > 3):.4f}; "
-            f"mean z per channel={z.reshape(-1, z.shape[-1]).mean(0)}")
-    nu = N_KEYS - 1
-    e_z2 = nu / (nu - 2)
-    var_z2 = 3 * nu**2 / ((nu - 2) * (nu - 4)) - e_z2**2
-    n_pix = z.reshape(-1, z.shape[-1]).shape[0]
-    assert flat.max() <= 6.5, info
-    assert np.mean(flat > 3.0) <= 0.03, info
-    assert np.mean(z**2) <= e_z2 + 5 * np.sqrt(var_z2 / n_pix), info
-    assert np.all(np.abs(z.reshape(-1, z.shape[-1]).mean(0)) <= 4.0 * np.sqrt(e_z2 / n_pix)), info
-    return z
 
 
 # ------------------------------------------------------------------------------------------------ fixtures
@@ -166,16 +54,6 @@ def stats():
 def camera_spec():
     """Factory for `CameraSpec` (plain floats; `.build()` gives a `jf.Camera`, `.rays(n)` float64 reference rays)."""
     return CameraSpec
-
-
-FLOOR_CAMERA = CameraSpec(origin=(0.0, 2.0, 3.0), target=(0.0, 0.0, 0.0), fov=40.0, width=16, height=12)
-"""Looks down at the floor; the floor fills the whole view (the top rays meet the floor ~6 units away)."""
-
-
-def make_floor(reflectance=(0.7, 0.5, 0.3), half=8.0):
-    """Diffuse floor y = 0, front face +y (edge_u = +x, edge_v = -z), 2*half wide."""
-    return jf.Rectangle(center=(0.0, 0.0, 0.0), edge_u=(2 * half, 0.0, 0.0), edge_v=(0.0, 0.0, -2 * half),
-                        bsdf=jf.Diffuse(reflectance))
 
 
 @pytest.fixture(scope="session")

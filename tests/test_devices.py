@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from helpers import assert_same_render_up_to_rounding
+
 REPO = Path(__file__).resolve().parent.parent
 
 SCRIPT = r"""
@@ -23,12 +25,11 @@ import jax
 sc = jaxfog.load_scene("data_synthetic/scenes/spot_fog.json",
                        ["camera.width=16", "camera.height=16", "integrator.max_depth=4"]).scene
 f = lambda s: jaxfog.render(sc.replace_medium(sigma_t=s), jax.random.key(3), 7)  # 7 spp: uneven split
-img = f(0.5)
-val, tan = jax.jvp(lambda s: f(s).mean(), (0.5,), (1.0,))
+img, tan = jax.jvp(f, (0.5,), (1.0,))
 # 1 spp in three chunks of 100 pixels (the last one padded): three work items, padded to a multiple of the devices
 img1 = jaxfog.render(sc, jax.random.key(5), 1, chunk_paths=100)
 img1_whole = jaxfog.render(sc, jax.random.key(5), 1)
-print(json.dumps({"devices": n, "img": img.tolist(), "jvp": float(tan), "img1": img1.tolist(),
+print(json.dumps({"devices": n, "img": img.tolist(), "jvp": tan.tolist(), "img1": img1.tolist(),
                   "img1_whole": img1_whole.tolist()}))
 """
 
@@ -46,16 +47,23 @@ def _result(p: subprocess.Popen) -> dict:
 
 
 def test_two_devices_match_one():
+    """One device and two (and a 1-spp layer in chunks of 100 pixels vs whole) are differently compiled programs of
+    the same paths: the images and the forward-mode derivative image agree up to float32 rounding, including rare
+    branch flips (the tolerance and its derivation: `helpers.assert_same_render_up_to_rounding`). A wrong split (a
+    lost or repeated chunk, other random numbers) changes most pixels and fails; so does the other key's image."""
     procs = _start(1), _start(2)  # both at once: each compiles mostly on one core
     one, two = (_result(p) for p in procs)
     assert one["devices"] == 1 and two["devices"] == 2
     a, b = np.asarray(one["img"]), np.asarray(two["img"])
-    # float32 sums of 7 layers in another order: rounding only
-    np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-7)
-    assert abs(two["jvp"] - one["jvp"]) <= 1e-5 * abs(one["jvp"])
+    assert_same_render_up_to_rounding(a, b, spp=7, label="7 spp, 1 vs 2 devices")
+    assert_same_render_up_to_rounding(np.asarray(one["jvp"]), np.asarray(two["jvp"]), spp=7,
+                                      scale=np.asarray(one["jvp"]), label="d image / d sigma_t, 1 vs 2 devices")
     # a 1-spp image split into chunks shared by the devices: the same paths, whatever the chunking and device count
+    whole = np.asarray(one["img1_whole"])
     for r in (one, two):
-        np.testing.assert_allclose(np.asarray(r["img1"]), np.asarray(one["img1_whole"]), rtol=1e-5, atol=1e-7)
+        assert_same_render_up_to_rounding(np.asarray(r["img1"]), whole, spp=1,
+                                          label=f"1 spp in chunks of 100, {r['devices']} device(s), vs whole")
+    assert np.mean(np.asarray(one["img1"]) != np.asarray(one["img"])) > 0.5  # positive control: other key and spp
 
 
 def test_devices_argument_is_checked():
@@ -69,3 +77,23 @@ def test_devices_argument_is_checked():
     for bad in (0, jax.local_device_count() + 1, 1.5):
         with pytest.raises(ValueError, match="devices"):
             jaxfog.render(sc, jax.random.key(0), 1, devices=bad)
+
+
+def test_the_rounding_comparison_can_fail():
+    """`assert_same_render_up_to_rounding` accepts rounding and a few flipped pixels, and refuses another image."""
+    import pytest
+
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0.1, 2.0, (16, 16, 3))
+    assert_same_render_up_to_rounding(a, a * (1 + 3e-5), spp=4)  # rounding
+    b = a.copy()
+    b[3, 4] *= 1.5  # one branch flip
+    assert assert_same_render_up_to_rounding(a, b, spp=4) == 1
+    with pytest.raises(AssertionError):
+        assert_same_render_up_to_rounding(a, rng.uniform(0.1, 2.0, a.shape), spp=4)  # another key
+    with pytest.raises(AssertionError):
+        assert_same_render_up_to_rounding(a, a * (1 + 3e-3), spp=4)  # a bias everywhere
+    c = a.copy()
+    c[5, 5, 0] = -a[5, 5, 0]  # negative radiance: more than any flip of non-negative paths can change
+    with pytest.raises(AssertionError):
+        assert_same_render_up_to_rounding(a, c, spp=4)

@@ -165,16 +165,30 @@ def test_values_and_gradients_finite(estimator):
             assert not bad.any(), (f"{estimator} {label}: non-finite {name} for (sigma_t, albedo, g) = "
                                    f"{GRID[bad].tolist()}")
         assert np.all(values >= 0.0), f"{estimator} {label}: negative radiance"
-    # the grid really has the hard cases: some escaping rays carry light, and the densest fog gives (almost) black
+    # the grid really has the hard cases: some camera rays carry light, and the densest fog gives black: every path
+    # from the camera to a light is at least |camera - point light| = 2.3 units long (triangle inequality), so at
+    # sigma_t = 200 its transmittance is exp(-460), which underflows float32 (smallest subnormal ~exp(-103)) to 0;
+    # 1e-30 leaves room for any estimator weight while failing on anything a renderer leaking light would give
     values = grid_results(estimator)[0][1][0]
     assert values[:, :N_CAMERA_RAYS].max() > 0.0
+    densest = GRID[:, 0] == max(SIGMA_VALUES)
+    assert np.linalg.norm(np.subtract(POINT_LIGHT, CAMERA_ORIGIN)) > 2.3
+    assert values[densest][:, :N_CAMERA_RAYS].max() <= 1e-30, (
+        f"{estimator}: the densest fog (sigma_t = {max(SIGMA_VALUES)}) is not black: camera-ray radiance up to "
+        f"{values[densest][:, :N_CAMERA_RAYS].max():.3g}")
 
 
 @pytest.mark.parametrize("estimator", ["detached", "reparam", "proposal"])
 def test_forward_equals_reverse(estimator):
-    """Sum over camera rays of the forward-mode derivative == reverse-mode gradient of the sum (same key, same
+    """The suite's one forward == reverse test (for every estimator, over the whole grid of hard parameters).
+
+    Sum over camera rays of the forward-mode derivative == reverse-mode gradient of the sum (same key, same
     function: float32 rounding only). Tolerance 1e-3 of the sum of the absolute terms (no cancellation can hide in
-    it), for every combination of the grid.
+    it), for every combination of the grid, except for rare branch flips: the reverse pass recomputes each bounce
+    (`jax.checkpoint`) in another compiled program, and a rounding difference at a threshold may send one camera ray
+    down another branch in one of the two modes. Such a flip changes the sum by at most that ray's derivative in
+    each mode, bounded by twice the largest single-ray derivative of the combination (`2 max_r |d L_r|`, the forward
+    Jacobian's); at most `FLIP_FRACTION` (2%) of the (combination, parameter) entries may use this bound.
 
     The special rays are left out of this comparison: with all uniforms exactly 0 several of their decisions are
     ties (a vertex exactly at a light, at distance 0 from the previous one), which `jax.checkpoint`'s recomputation
@@ -189,11 +203,22 @@ def test_forward_equals_reverse(estimator):
     for label, (values, jac, rev) in grid_results(estimator):
         fwd = jac[:, :N_CAMERA_RAYS].sum(axis=(1, 2))  # (B, 3)
         scale = np.abs(jac[:, :N_CAMERA_RAYS]).sum(axis=(1, 2))
+        one_ray = np.abs(jac[:, :N_CAMERA_RAYS].sum(axis=2)).max(axis=1)  # (B, 3): largest single-ray derivative
         err = np.abs(fwd - rev[:, 0])
         ok = err <= rtol * scale + 1e-30
+        flip = ~ok & (err <= rtol * scale + 2.0 * one_ray + 1e-30)
         worst = np.unravel_index(np.argmax(err / (scale + 1e-30)), err.shape)
-        assert ok.all(), (f"{estimator} {label}: forward {fwd[worst]} vs reverse {rev[worst[0], 0, worst[1]]} "
-                          f"(d/d parameter {worst[1]}) at (sigma_t, albedo, g) = {GRID[worst[0]].tolist()}")
+        info = (f"{estimator} {label}: forward {fwd[worst]} vs reverse {rev[worst[0], 0, worst[1]]} "
+                f"(d/d parameter {worst[1]}) at (sigma_t, albedo, g) = {GRID[worst[0]].tolist()}; "
+                f"{int((~ok).sum())} of {ok.size} entries beyond rounding, {int(flip.sum())} within a branch flip")
+        assert np.all(ok | flip), info
+        assert flip.sum() <= max(1, int(FLIP_FRACTION * ok.size)), info
+
+
+FLIP_FRACTION = 0.02
+"""Largest fraction of `test_forward_equals_reverse`'s entries that may differ by a branch flip (none seen natively
+on AVX-512, nor under `XLA_FLAGS=--xla_cpu_max_isa=AVX2`; one flip needs a rounding difference within ~1e-6 of a
+threshold)."""
 
 
 # ------------------------------------------------------------------------------------------- d/d sigma_t at sigma_t = 0

@@ -14,7 +14,7 @@ import jaxfog as jf
 from jaxfog._sampling import light_lobe_pdf, light_lobe_sample
 from jaxfog._math import safe_normalize
 
-from conftest import FLOOR_CAMERA, make_floor  # tests/ is on sys.path (rootdir conftest)
+from helpers import FLOOR_CAMERA, block_mean, make_floor
 
 X = jnp.array([0.3, -0.2, 0.5], jnp.float32)
 LIGHT = jnp.array([-0.4, 1.1, 0.9], jnp.float32)
@@ -117,8 +117,7 @@ def _fog_scene(light):
 
 def _blocks(imgs, b=4):
     """Means over b x b pixel blocks: (keys, H/b, W/b, 3)."""
-    k, h, w, c = imgs.shape
-    return imgs.reshape(k, h // b, b, w // b, b, c).mean(axis=(2, 4))
+    return block_mean(imgs, b)
 
 
 @pytest.mark.parametrize("light", [pytest.param("point", marks=pytest.mark.slow), "spot"])

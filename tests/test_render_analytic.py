@@ -18,7 +18,7 @@ import jaxfog as jf
 from jaxfog._lights import spot_falloff
 
 # tests/ is on sys.path (pytest's default rootdir-relative import of conftest)
-from conftest import CameraSpec, hg_np, make_floor, spot_falloff_np
+from helpers import CameraSpec, hg_np, make_floor, spot_falloff_np
 
 POINT_POS = (0.8, 1.5, 0.4)
 POINT_I = np.array([6.0, 5.0, 4.0])

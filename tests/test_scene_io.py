@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import copy
 import json
-import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -16,12 +15,7 @@ import jaxfog
 from jaxfog import SceneError, load_scene
 from jaxfog._scene_io import apply_overrides, scene_from_dict
 
-SCENES = pathlib.Path(__file__).resolve().parents[1] / "data_synthetic" / "scenes"
-SPOT_FOG = SCENES / "spot_fog.json"
-
-
-def spot_fog_dict() -> dict:
-    return json.loads(SPOT_FOG.read_text())
+from helpers import SCENES_DIR as SCENES, SPOT_FOG, spot_fog_dict
 
 
 def load_modified(tmp_path, mutate, overrides=()):
