@@ -17,7 +17,8 @@ from jaxfog._mitsuba import import_mitsuba, look_at_matrix, rectangle_matrix
 REPO = Path(__file__).resolve().parent.parent
 SCENES = sorted((REPO / "data_synthetic" / "scenes").glob("*.json"))
 NO_MITSUBA_PHASE = ("droplet", "draine")
-HG_GREY_SCENES = [p for p in SCENES if (lambda m: m is not None and "g" in m and not isinstance(m["sigma_t"], list))(
+HG_GREY_SCENES = [p for p in SCENES if (lambda m: m is not None and m.get("type", "homogeneous") == "homogeneous"
+                                          and "g" in m and not isinstance(m["sigma_t"], list))(
     json.loads(p.read_text()).get("medium"))]
 """The shipped scenes with a grey Henyey–Greenstein medium (the field-by-field check below assumes them)."""
 """Phase functions `to_mitsuba` has no counterpart for (a `tabphase` of their pdf is not written): it refuses them."""
@@ -166,8 +167,9 @@ def test_look_at_matrix_is_mitsubas(mi):
 def test_mitsuba_loads_every_shipped_scene(mi):
     for path in SCENES:
         data = jf.load_scene(path, ["camera.width=8", "camera.height=8"]).data
-        if ((data.get("medium") or {}).get("phase") or {}).get("type") in NO_MITSUBA_PHASE:
-            continue
+        med = data.get("medium") or {}
+        if (med.get("phase") or {}).get("type") in NO_MITSUBA_PHASE or med.get("type") == "height":
+            continue  # to_mitsuba refuses them (height fog: see docs/results/height_fog.md for its grid volume)
         scene = mi.load_dict(jf.to_mitsuba(data))  # Mitsuba imported with a variant: ScalarTransform4f by default
         assert len(scene.emitters()) == len(data["lights"]), path.name
         assert [int(x) for x in scene.sensors()[0].film().size()] == [8, 8]
