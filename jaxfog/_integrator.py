@@ -80,8 +80,10 @@ class SamplingOptions(eqx.Module):
             raise TypeError(f"SamplingOptions.equiangular must be True or False, got {self.equiangular!r}")
         for name in ("light_lobe", "distance_mix"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < 1.0:
-                raise ValueError(f"SamplingOptions.{name} must be a number in [0, 1), got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise TypeError(f"SamplingOptions.{name} must be a number in [0, 1), got {type(v).__name__} {v!r}")
+            if not 0.0 <= v < 1.0:  # also refuses NaN
+                raise ValueError(f"SamplingOptions.{name} must be in [0, 1), got {v!r}")
 
 
 def sampling_medium(medium: AbstractMedium | None, options: SamplingOptions, proposal=None):

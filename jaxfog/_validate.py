@@ -151,8 +151,9 @@ def _check_render_args(scene, key, spp, *, sampling, proposal, batch_paths, chun
     _check_key(key)
     _positive_int("spp", spp)
     if proposal is not None and not isinstance(proposal, AbstractMedium):
-        raise TypeError(f"render: proposal must be None or a medium (the reference medium of "
-                        f"estimator=\"proposal\", e.g. a jaxfog.HomogeneousMedium), got {_describe(proposal)}")
+        raise TypeError(f"render: proposal must be None or a jaxfog.HomogeneousMedium (or another medium of the "
+                        f"scene medium's kind: the reference medium of estimator=\"proposal\"), got "
+                        f"{_describe(proposal)}")
     if proposal is not None and scene.medium is not None and type(proposal) is not type(scene.medium):
         raise TypeError(f"render: proposal must be a {type(scene.medium).__name__} like the scene's medium, got "
                         f"{type(proposal).__name__}")

@@ -218,8 +218,8 @@ KEY = jax.random.key(0)
 
 
 def _render_kwargs(**kw):
-    base = dict(estimator="detached", proposal=None, equiangular=True, light_lobe=0.3, distance_mix=0.15,
-                batch_paths=1 << 16, chunk_paths=1024, devices=None, progress=None)
+    base = dict(sampling=jaxfog.SamplingOptions(), proposal=None, batch_paths=1 << 16, chunk_paths=1024, devices=None,
+                progress=None)
     return {**base, **kw}
 
 

@@ -30,6 +30,7 @@ def _mean(theta, estimator, key=0, spp=4):
 THETA = jnp.array([0.5, 0.9, 0.6])
 
 
+@pytest.mark.slow
 def test_proposal_fixed_key_ad_matches_finite_differences():
     # With a fixed key and a fixed proposal the image is a smooth deterministic function of theta (estimators.md),
     # so central differences (h = 1e-3, float32 renders in float64 arithmetic of the difference) must agree.

@@ -157,7 +157,7 @@ def grid_results(estimator: str):
     return [(label, run(estimator, GRID, ref, seed=1)) for label, ref in _runs(estimator)]
 
 
-@pytest.mark.parametrize("estimator", ["detached", "reparam", "proposal"])
+@pytest.mark.parametrize("estimator", ["detached", pytest.param("reparam", marks=pytest.mark.slow), "proposal"])
 def test_values_and_gradients_finite(estimator):
     for label, (values, jac, rev) in grid_results(estimator):
         for name, arr in (("value", values), ("forward-mode Jacobian", jac), ("reverse-mode gradient", rev)):

@@ -472,6 +472,7 @@ def test_sun_single_scattering_matches_quadrature(stats):
     assert np.max(keys / ref) < 4.0, np.max(keys / ref)
 
 
+@pytest.mark.slow
 def test_sunlit_floor_through_absorbing_height_fog(stats):
     """Albedo 0: the floor pixel is R/pi E cos_sun exp(-tau(floor -> sky)) exp(-tau(camera -> floor)) exactly
     (the only noise is the pixel jitter). Also: a sun below the horizon gives black (the floor faces away)."""
@@ -494,6 +495,7 @@ def test_sunlit_floor_through_absorbing_height_fog(stats):
 
 
 # ================================================================================ homogeneous limit
+@pytest.mark.slow
 def test_homogeneous_limit():
     """H = 1e6 (base height 0, everything within 3 units of it: sigma_t varies by 3e-6) renders the image of the
     HomogeneousMedium with sigma_t = sigma_0, same key: free flight draws the same T and inverts it with psi(y),

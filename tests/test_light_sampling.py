@@ -120,7 +120,7 @@ def _blocks(imgs, b=4):
     return block_mean(imgs, b)
 
 
-@pytest.mark.parametrize("light", [pytest.param("point", marks=pytest.mark.slow), "spot"])
+@pytest.mark.parametrize("light", [pytest.param("point", marks=pytest.mark.slow), pytest.param("spot", marks=pytest.mark.slow)])
 def test_variance_reduction_does_not_change_the_expected_image(stats, light):
     """The default techniques, and the lobe and the mixture both at a high probability (0.7, so that an error in
     their pdfs would dominate), against plain free flight with light sampling at every vertex, on 4 x 4-pixel block

@@ -33,6 +33,7 @@ def test_unbounded_equals_a_deep_fixed_depth(stats):
     stats.assert_statistically_equal(unbounded[0], unbounded[1], deep[0], ref_se=deep[1], label="max_depth -1 vs 24")
 
 
+@pytest.mark.slow
 def test_unbounded_image_depends_only_on_key_and_spp():
     """The lanes' regeneration order changes with the chunk size; the paths and so the image do not (float32
     summation order aside)."""
