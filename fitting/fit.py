@@ -16,7 +16,6 @@ import argparse
 import json
 import os
 import sys
-import time
 
 import numpy as np
 
@@ -24,6 +23,7 @@ from .core import FitConfig, make_view, fit_views
 from jaxfog._validate import LimitError, check_size
 
 from .params import SPECS, FitError, check_names, check_value, scene_values
+from jaxfog._validate import seed_argument as _seed
 
 
 def parse_assignments(items, what="--init") -> dict:
@@ -41,14 +41,6 @@ def parse_assignments(items, what="--init") -> dict:
     return out
 
 
-def _seed(text: str) -> int:
-    from jaxfog._validate import check_seed
-
-    try:
-        return check_seed(int(text))
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(f"expected an integer in [0, 4294967295], got {text!r}"
-                                         if "invalid literal" in str(e) else str(e)) from None
 
 
 def check_outputs(out: str, inputs) -> list[str]:

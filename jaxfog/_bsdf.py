@@ -17,7 +17,7 @@ import abc
 from typing import ClassVar, NamedTuple
 
 import equinox as eqx
-from equinox import AbstractClassVar, AbstractVar
+from equinox import AbstractClassVar
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 

@@ -59,15 +59,6 @@ def _float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
 
 
-def _seed(text: str) -> int:
-    """A seed in [0, 2^32) (`_validate.check_seed`): outside it, seeds would repeat other seeds' images."""
-    from ._validate import check_seed
-
-    try:
-        return check_seed(int(text))
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(f"expected an integer in [0, 4294967295], got {text!r}"
-                                         if "invalid literal" in str(e) else str(e)) from None
 
 
 EXPOSURE_RANGE = (-100.0, 100.0)
@@ -128,6 +119,7 @@ def _check_output(path: str, ext: str, option: str, inputs=()) -> None:
 
 
 from ._measure import CompileTimer as _CompileTimer  # noqa: E402
+from ._validate import seed_argument as _seed
 
 
 def _run_render(args: argparse.Namespace) -> int:

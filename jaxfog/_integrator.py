@@ -32,7 +32,6 @@ from ._bsdf import AbstractLobeBSDF
 from ._math import dot, one_minus_cos_between, safe_div, safe_normalize
 from ._medium import AbstractMedium
 from ._sampling import (
-    Equiangular,
     Polar,
     equiangular_pdf,
     equiangular_sample,

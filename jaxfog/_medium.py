@@ -39,7 +39,7 @@ import abc
 from typing import NamedTuple
 
 import equinox as eqx
-from equinox import AbstractClassVar, AbstractVar
+from equinox import AbstractVar
 import jax
 import jax.numpy as jnp
 import numpy as np

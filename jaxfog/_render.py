@@ -116,7 +116,6 @@ def _trace_items_unbounded(scene: Scene, key: PRNGKeyArray, layer_ids: Array, ch
     words = jax.vmap(lambda layer: jnp.stack([key_words(k) for k in jax.random.split(jax.random.fold_in(key, layer))])
                      )(layer_ids)  # (items, 2 [pixel, path], 3)
     total = jnp.sum(valid.astype(jnp.int32)) * chunk  # valid items come first
-    lanes = jnp.arange(chunk)
     cols = jnp.arange(K, dtype=jnp.uint32)
 
     def start(q):

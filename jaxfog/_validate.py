@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-import math
 import numbers
 import os
 
@@ -84,6 +83,18 @@ def check_seed(seed, what: str = "seed") -> int:
         raise ValueError(f"{what} {seed} is out of range; valid range [0, 4294967295] (2^32 seeds; others would "
                          f"repeat one of these seeds' images)")
     return seed
+
+
+def seed_argument(text: str) -> int:
+    """argparse `type=` for a seed: an int in [0, 2^32) (`check_seed`; outside it, seeds would repeat other seeds'
+    images), else `argparse.ArgumentTypeError` with the valid range. Shared by `jaxfog render` and `fitting.fit`."""
+    import argparse
+
+    try:
+        return check_seed(int(text))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 4294967295], got {text!r}"
+                                         if "invalid literal" in str(e) else str(e)) from None
 
 
 def check_finite(image, what: str = "image"):
