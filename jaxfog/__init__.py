@@ -1,6 +1,6 @@
 """jaxfog: a differentiable volumetric path tracer for homogeneous fog, in JAX.
 
-Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Diffuse`, `Mirror`, `Glass`, `PointLight`,
+Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Mesh`, `Diffuse`, `Mirror`, `Glass`, `PointLight`,
 `SpotLight`, `AreaLight`, `DirectionalLight`, `HenyeyGreenstein`, `Rayleigh`, `TwoTermHG`, `Draine`, `Droplet`,
 `HomogeneousMedium`, `HeightFog`, `Scene`) and their interfaces
 (`AbstractBSDF`, `AbstractLobeBSDF`, `AbstractLight`, `AbstractPointLikeLight`, `AbstractPhaseFunction`,
@@ -30,6 +30,7 @@ from ._lights import (
     SpotLight as SpotLight,
 )
 from ._height import HeightFog as HeightFog
+from ._mesh import Mesh as Mesh, MeshError as MeshError, read_mesh as read_mesh, write_ply as write_ply
 from ._medium import AbstractMedium as AbstractMedium, HomogeneousMedium as HomogeneousMedium
 from ._mitsuba import render_mitsuba as render_mitsuba, to_mitsuba as to_mitsuba
 from ._phase import (

@@ -41,6 +41,7 @@ from ._sampling import (
     power_heuristic,
     to_direction,
 )
+from ._mesh import mesh_hit, mesh_nearest, mesh_occluded
 from ._scene import EMITTER_KIND, Packed, Scene
 from ._shapes import intersect_rectangles, intersect_spheres
 
@@ -262,28 +263,51 @@ def _hit_distances(pk: Packed, o, d):
 
 
 def intersect(pk: Packed, o, d) -> Hit:
-    """Nearest hit of the ray `(o, d)`; the normal is the geometric front normal."""
+    """Nearest hit of the ray `(o, d)`; the normal is the geometric front normal (a smooth mesh's: its shading
+    normal). Meshes (BVH traversal) are traced only when the scene has some."""
     t_all = _hit_distances(pk, o, d)
-    if t_all is None:
+    if t_all is None and not pk.meshes:
         return Hit(jnp.float32(jnp.inf), jnp.int32(0), jnp.array([0.0, 0.0, 1.0], jnp.float32), jnp.bool_(False), o)
-    idx = jnp.argmin(t_all)
-    t = t_all[idx]
-    found = jnp.isfinite(t)
-    p = o + jnp.where(found, t, 0.0) * d
+    if t_all is not None:
+        idx = jnp.argmin(t_all)
+        t = t_all[idx]
+    if not pk.meshes:
+        found = jnp.isfinite(t)
+        p = o + jnp.where(found, t, 0.0) * d
+    else:
+        p_analytic = o + jnp.where(jnp.isfinite(t), t, 0.0) * d if t_all is not None else o
     normals = []
     if pk.n_spheres:
-        normals.append(safe_normalize(p[None, :] - pk.sph_center))
+        normals.append(safe_normalize((p if not pk.meshes else p_analytic)[None, :] - pk.sph_center))
     if pk.rect_center.shape[0]:
         normals.append(pk.rect_normal)
-    return Hit(t, idx, jnp.concatenate(normals)[idx], found, p)
+    if not pk.meshes:
+        return Hit(t, idx, jnp.concatenate(normals)[idx], found, p)
+    if t_all is not None:
+        n = jnp.concatenate(normals)[idx]
+    else:
+        t, idx, n = jnp.float32(jnp.inf), jnp.int32(0), jnp.array([0.0, 0.0, 1.0], jnp.float32)
+    for mesh, shape in zip(pk.meshes, pk.mesh_shape):
+        t_m, slot = mesh_nearest(mesh, o, d, jax.lax.stop_gradient(t))
+        hit_m = slot >= 0
+        t_exact, n_m = mesh_hit(mesh, o, d, jnp.maximum(slot, 0))
+        t = jnp.where(hit_m, t_exact, t)
+        idx = jnp.where(hit_m, shape, idx)
+        n = jnp.where(hit_m, n_m, n)
+    found = jnp.isfinite(t)
+    p = o + jnp.where(found, t, 0.0) * d
+    return Hit(t, idx, n, found, p)
 
 
 def occluded(pk: Packed, o, d, dist) -> Array:
     """Whether anything blocks the segment from `o` along unit `d` before distance `dist` (slightly shortened)."""
     t_all = _hit_distances(pk, o, d)
-    if t_all is None:
+    if t_all is None and not pk.meshes:
         return jnp.bool_(False)
-    return jnp.min(t_all) < dist * (1.0 - 1e-4)
+    blocked = jnp.min(t_all) < dist * (1.0 - 1e-4) if t_all is not None else jnp.bool_(False)
+    for mesh in pk.meshes:
+        blocked = blocked | mesh_occluded(mesh, o, d, dist * (1.0 - 1e-4))
+    return blocked
 
 
 def pick(values, u):

@@ -7,7 +7,8 @@ renders it (it needs Mitsuba). How each part maps is in `docs/conventions.md` ("
 - medium: `homogeneous` (`sigma_t`, `albedo`; phase `hg` with `g`, or `rayleigh`) filling a cube of side `extent`
   around the camera with a `null` BSDF; the sensor's medium and every shape's exterior medium;
 - rectangles: `rectangle` with `to_world` columns `(edge_u / 2, edge_v / 2, normal, center)`, so Mitsuba's local +z
-  normal is jaxfog's front normal `normalize(cross(edge_u, edge_v))`; spheres: `sphere`;
+  normal is jaxfog's front normal `normalize(cross(edge_u, edge_v))`; spheres: `sphere`; meshes: `ply` / `obj`
+  (`filename`, `face_normals` unless `smooth`, `to_world`: the same matrix);
 - BSDFs: `diffuse`; mirror: `conductor` with `material = "none"` times `specular_reflectance`; glass: `dielectric`
   (no medium inside, as in jaxfog);
 - lights: `point`; `spot` (`cutoff_angle`, `beam_width`, `to_world = look_at(position, position + direction, up)`);
@@ -223,6 +224,12 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
             shape = {"type": "rectangle", "to_world": to_world(rectangle_matrix(s["center"], s["edge_u"], s["edge_v"]))}
         elif s["type"] == "sphere":
             shape = {"type": "sphere", "center": _rgb(s["center"]), "radius": float(s["radius"])}
+        elif s["type"] == "mesh":
+            from ._mesh import transform_matrix
+
+            ext = os.path.splitext(s["file"])[1].lower()
+            shape = {"type": "ply" if ext == ".ply" else "obj", "filename": s["file"],
+                     "face_normals": not s["smooth"], "to_world": to_world(transform_matrix(s["to_world"]))}
         else:
             raise ValueError(f"to_mitsuba: no Mitsuba shape for shapes.{i}.type {s['type']!r}")
         shape["bsdf"] = _bsdf(s["bsdf"], f"shapes.{i}")

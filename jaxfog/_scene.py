@@ -20,6 +20,7 @@ from ._bsdf import AbstractBSDF
 from ._camera import Camera
 from ._lights import AbstractLight, AbstractPointLikeLight, AreaLight
 from ._medium import AbstractMedium
+from ._mesh import Mesh
 from ._shapes import Rectangle, Sphere
 
 EMITTER_KIND = -1
@@ -29,7 +30,7 @@ EMITTER_KIND = -1
 class Scene(eqx.Module):
     """Everything the renderer needs.
 
-    **Fields:** `camera`; `shapes`: tuple of `Sphere`/`Rectangle`; `lights`: tuple of lights (`PointLight`,
+    **Fields:** `camera`; `shapes`: tuple of `Sphere`/`Rectangle`/`Mesh`; `lights`: tuple of lights (`PointLight`,
     `SpotLight`, `AreaLight`, `DirectionalLight`); `medium`: a medium (`HomogeneousMedium`, `HeightFog`) or None
     (no fog: no medium code is compiled); `max_depth`: static int >= 1, the longest path in segments from the camera
     to a light, the light-sampling segment included (docs/conventions.md; 8 is the default, 2 is single scattering),
@@ -51,8 +52,8 @@ class Scene(eqx.Module):
         if not isinstance(self.rr_depth, int) or isinstance(self.rr_depth, bool) or self.rr_depth < 1:
             raise ValueError(f"Scene.rr_depth must be an integer >= 1, got {self.rr_depth!r}")
         for s in self.shapes:
-            if not isinstance(s, (Sphere, Rectangle)):
-                raise TypeError(f"shapes must be Sphere or Rectangle, got {type(s).__name__}")
+            if not isinstance(s, (Sphere, Rectangle, Mesh)):
+                raise TypeError(f"shapes must be Sphere, Rectangle or Mesh, got {type(s).__name__}")
             if not isinstance(s.bsdf, AbstractBSDF):
                 raise TypeError(f"a shape's bsdf must be a BSDF (Diffuse, Mirror, Glass), got {type(s.bsdf).__name__}")
         for light in self.lights:
@@ -94,12 +95,14 @@ class Scene(eqx.Module):
 
 class Packed(NamedTuple):
     """The scene's geometry as stacked arrays, and its BSDFs grouped by type (global shape index: spheres,
-    rectangles, then one black rectangle per area light).
+    rectangles, one black rectangle per area light, then one index per mesh).
 
     `bsdf_types` (the BSDF classes present, in order of appearance), `bsdf_kind` (per shape: the index of its BSDF
     class in `bsdf_types`, or `EMITTER_KIND`) and `emitter_shape` (per area light, in `scene.area_lights` order: its
     shape index) are static; `bsdfs[k]` is one Module of type `bsdf_types[k]` whose array fields have a leading
-    shape axis (shapes of other types hold a copy of the first one's values, never used).
+    shape axis (shapes of other types hold a copy of the first one's values, never used). `meshes`: the scene's
+    `Mesh` Modules (each with its own BVH) and `mesh_shape` (static): each one's shape index. A scene without
+    meshes has `meshes = ()`, and no mesh code is traced.
     """
 
     sph_center: Float[Array, "Ns 3"]
@@ -112,6 +115,8 @@ class Packed(NamedTuple):
     bsdf_kind: np.ndarray
     bsdfs: tuple
     emitter_shape: tuple
+    meshes: tuple = ()
+    mesh_shape: tuple = ()
 
     @property
     def n_spheres(self) -> int:
@@ -126,17 +131,20 @@ def pack(scene: Scene) -> Packed:
     """Stack the scene's shapes (and area lights, as black emitting rectangles) into arrays for the integrator."""
     spheres = [s for s in scene.shapes if isinstance(s, Sphere)]
     rects = [s for s in scene.shapes if isinstance(s, Rectangle)]
+    meshes = [s for s in scene.shapes if isinstance(s, Mesh)]
     emitters = list(scene.area_lights)
     ordered = spheres + rects
     types = []
-    for s in ordered:
+    for s in ordered + meshes:
         if type(s.bsdf) not in types:
             types.append(type(s.bsdf))
-    kind = [types.index(type(s.bsdf)) for s in ordered] + [EMITTER_KIND] * len(emitters)
+    kind = ([types.index(type(s.bsdf)) for s in ordered] + [EMITTER_KIND] * len(emitters)
+            + [types.index(type(s.bsdf)) for s in meshes])
     bsdfs = []
     for t in types:
-        filler = next(s.bsdf for s in ordered if type(s.bsdf) is t)
-        per_shape = [s.bsdf if type(s.bsdf) is t else filler for s in ordered] + [filler] * len(emitters)
+        filler = next(s.bsdf for s in ordered + meshes if type(s.bsdf) is t)
+        per_shape = ([s.bsdf if type(s.bsdf) is t else filler for s in ordered] + [filler] * len(emitters)
+                     + [s.bsdf if type(s.bsdf) is t else filler for s in meshes])
         bsdfs.append(jax.tree.map(lambda *xs: jnp.stack(xs), *per_shape))
 
     def stack(xs, shape):
@@ -154,4 +162,6 @@ def pack(scene: Scene) -> Packed:
         bsdf_kind=np.asarray(kind, dtype=np.int32),
         bsdfs=tuple(bsdfs),
         emitter_shape=tuple(len(ordered) + j for j in range(len(emitters))),
+        meshes=tuple(meshes),
+        mesh_shape=tuple(len(ordered) + len(emitters) + j for j in range(len(meshes))),
     )

@@ -84,7 +84,8 @@ AT_LEAST_1 = Range(1, None)
 
 @dataclass(frozen=True)
 class Kind:
-    """A leaf kind: `NUMBER` (finite real), `INTEGER`, `VEC3` (3 finite reals), `RGB` (a number or 3), `TEXT`."""
+    """A leaf kind: `NUMBER` (finite real), `INTEGER`, `VEC3` (3 finite reals), `RGB` (a number or 3), `TEXT`,
+    `BOOLEAN`, `MATRIX4` (4 rows of 4 finite reals)."""
 
     name: str
     expects: str
@@ -95,6 +96,8 @@ INTEGER = Kind("integer", "an integer")
 VEC3 = Kind("vec3", "a 3-vector [x, y, z]")
 RGB = Kind("rgb", "a number or a list of 3 numbers [r, g, b]")
 TEXT = Kind("text", "a string")
+BOOLEAN = Kind("boolean", "true or false")
+MATRIX4 = Kind("matrix4", "a 4x4 matrix (a list of 4 rows of 4 numbers)")
 
 
 @dataclass(frozen=True)
@@ -203,7 +206,9 @@ def _build_homogeneous(sigma_t, albedo, g, phase, extent):
     # array would compile a second program).
     if phase is None:
         phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
-    return HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=phase, extent=float(extent))
+    # a single number is a grey medium by construction: one sampling rate (spectral MIS would cost ~10% for nothing)
+    grey = not isinstance(sigma_t, (list, tuple))
+    return HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=phase, extent=float(extent), spectral_mis=not grey)
 
 
 def _build_height(sigma_0, height_scale, base_height, albedo, g, phase, up, extent):
@@ -254,6 +259,59 @@ SHAPES = {
         build=_make("Rectangle"),
     ),
 }
+
+def _transform_exclusive(values: dict, path: str) -> None:
+    """A transform is either a `matrix` or any of `scale`, `rotate`, `translate`; the matrix is invertible, affine."""
+    parts = [k for k in ("scale", "rotate", "translate") if values[k] is not None]
+    m = values["matrix"]
+    if m is not None:
+        if parts:
+            raise _Invalid(_join(path, "matrix"), f"given together with {', '.join(parts)}",
+                           "expected either matrix or any of scale, rotate, translate")
+        if m[3] != [0.0, 0.0, 0.0, 1.0]:
+            raise _Invalid(_join(path, "matrix"), f"last row {_fmt(m[3])} is not [0, 0, 0, 1]",
+                           "expected an affine 4x4 matrix")
+        a = [r[:3] for r in m[:3]]
+        det = _dot(a[0], _cross(a[1], a[2]))
+        if abs(det) < 1e-12:
+            raise _Invalid(_join(path, "matrix"), "is singular", "expected an invertible 4x4 matrix")
+    s = values["scale"]
+    if s is not None and (s == 0 if not isinstance(s, list) else any(x == 0 for x in s)):
+        raise _Invalid(_join(path, "scale"), f"{_fmt(s)} has a zero factor", "expected nonzero scale factors")
+
+
+ROTATION = Section({"axis": Field(VEC3, nonzero=True), "angle": Field(NUMBER)})
+"""A rotation by `angle` degrees about `axis` (counter-clockwise seen from the tip of the axis)."""
+
+TRANSFORM = Section(
+    {
+        "scale": Field(RGB, default=None),
+        "rotate": Field(ROTATION, default=None),
+        "translate": Field(VEC3, default=None),
+        "matrix": Field(MATRIX4, default=None),
+    },
+    checks=(_transform_exclusive,),
+)
+"""A mesh's `to_world`: a 4x4 `matrix`, or scale (a number or 3), then rotate, then translate (M = T R S)."""
+
+
+def _build_mesh(file, bsdf, to_world, smooth):
+    from ._mesh import Mesh
+
+    return Mesh.from_file(file, bsdf, to_world=to_world, smooth=smooth)
+
+
+SHAPES["mesh"] = Section(
+    {
+        "file": Field(TEXT),
+        "bsdf": Field(Typed(BSDFS)),
+        "to_world": Field(TRANSFORM, default=None),
+        "smooth": Field(BOOLEAN, default=False),
+    },
+    build=_build_mesh,
+)
+"""A triangle mesh from an OBJ or PLY `file` (relative to the scene file, or absolute); `smooth`: interpolated
+vertex normals (the file must have them; default: flat face normals)."""
 
 LIGHTS = {
     "point": Section({"position": Field(VEC3), "intensity": Field(RGB, range=NON_NEGATIVE)}, build=_make("PointLight")),
@@ -424,6 +482,14 @@ def _check_leaf(value, kind: Kind, path: str, rng: Range, nonzero: bool, sibling
         if not isinstance(value, str):
             raise _Invalid(path, f"got {_describe(value)}", "expected a string")
         return value
+    if kind is BOOLEAN:
+        if not isinstance(value, bool):
+            raise _Invalid(path, f"got {_describe(value)}", valid)
+        return value
+    if kind is MATRIX4:
+        if not (isinstance(value, list) and len(value) == 4 and all(isinstance(r, list) and len(r) == 4 for r in value)):
+            raise _Invalid(path, f"got {_describe(value)}", valid)
+        return [[_number(x, f"{path}[{i}][{j}]", valid) for j, x in enumerate(r)] for i, r in enumerate(value)]
     if kind is INTEGER:
         if not (isinstance(value, int) and not isinstance(value, bool)):
             raise _Invalid(path, f"got {_describe(value)}", valid)
@@ -595,11 +661,35 @@ def scene_from_dict(data: dict, source: str = "<dict>", overrides=()) -> SceneFi
         valid = _check(data, SCHEMA, "")
     except _Invalid as e:
         raise SceneError(f"{_base(source)}: {e.path or '<top level>'}: {e.problem}; {e.valid}") from None
+    _check_mesh_files(valid, source)
     stem = os.path.splitext(_base(source))[0]
     name = valid["name"] if valid["name"] is not None else stem
     valid["name"] = name
     scene = _build_scene(valid)
     return SceneFile(scene=scene, spp=valid["integrator"]["spp"], path=source, data=valid, name=name)
+
+
+def _check_mesh_files(valid: dict, source: str) -> None:
+    """Resolve each mesh's `file` (relative to the scene file's folder; to the working directory for a dict) to an
+    absolute path, stored in the validated dict, and read and validate it: a `SceneError` names the scene file, the
+    key and the mesh file's problem (missing, unreadable, no faces, non-finite or degenerate)."""
+    from ._mesh import MeshError, read_mesh_cached
+
+    base = os.path.dirname(os.path.abspath(source)) if source and not source.startswith("<") else os.getcwd()
+    for i, shape in enumerate(valid["shapes"]):
+        if shape["type"] != "mesh":
+            continue
+        path = shape["file"] if os.path.isabs(shape["file"]) else os.path.join(base, shape["file"])
+        path = os.path.normpath(path)
+        key = f"shapes[{i}].file"
+        try:
+            mesh = read_mesh_cached(path)
+        except MeshError as e:
+            raise SceneError(f"{_base(source)}: {key}: {e}") from None
+        if shape["smooth"] and mesh.normals is None:
+            raise SceneError(f"{_base(source)}: shapes[{i}].smooth: {path} has no vertex normals; "
+                             "expected smooth: false (flat normals) or a file with vertex normals")
+        shape["file"] = path
 
 
 def load_scene(path, overrides=()) -> SceneFile:

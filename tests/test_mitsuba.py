@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import jaxfog as jf
+from jaxfog._mesh import transform_matrix
 from jaxfog._mitsuba import import_mitsuba, look_at_matrix, rectangle_matrix
 
 REPO = Path(__file__).resolve().parent.parent
@@ -53,9 +54,12 @@ def test_every_shipped_scene_converts(path):
     data = sf.data
     d = jf.to_mitsuba(path, spp=5, seed=7, transform=MATRIX)
     as_lists = lambda m: m.tolist()  # noqa: E731
+    raw = json.loads(path.read_text())
+    for sh in raw.get("shapes", []):  # a dict has no folder: its mesh files are relative to the working directory
+        if sh["type"] == "mesh":
+            sh["file"] = str(path.parent / sh["file"])
     assert jf.to_mitsuba(path, spp=5, seed=7, transform=as_lists) == jf.to_mitsuba(
-        sf, spp=5, seed=7, transform=as_lists) == jf.to_mitsuba(json.loads(path.read_text()), spp=5, seed=7,
-                                                                transform=as_lists)
+        sf, spp=5, seed=7, transform=as_lists) == jf.to_mitsuba(raw, spp=5, seed=7, transform=as_lists)
     assert d["type"] == "scene"
     assert d["integrator"] == {"type": "volpath", "max_depth": data["integrator"]["max_depth"],
                                "rr_depth": data["integrator"]["max_depth"] + 1000}
@@ -84,10 +88,14 @@ def test_every_shipped_scene_converts(path):
     mitsuba_bsdf = {"diffuse": "diffuse", "mirror": "conductor", "glass": "dielectric"}
     for i, sh in enumerate(data["shapes"]):
         out = d[f"shape_{i}"]
-        assert out["type"] == sh["type"] and out["bsdf"]["type"] == mitsuba_bsdf[sh["bsdf"]["type"]]
+        want_type = {"mesh": "ply" if sh.get("file", "").endswith(".ply") else "obj"}.get(sh["type"], sh["type"])
+        assert out["type"] == want_type and out["bsdf"]["type"] == mitsuba_bsdf[sh["bsdf"]["type"]]
         assert ("exterior" in out) == (med is not None)
         if sh["type"] == "sphere":
             assert out["center"] == sh["center"] and out["radius"] == sh["radius"]
+        elif sh["type"] == "mesh":  # the same file (absolute), face normals unless smooth, the same to_world
+            assert out["filename"] == sh["file"] and out["face_normals"] == (not sh["smooth"])
+            np.testing.assert_allclose(out["to_world"], transform_matrix(sh["to_world"]))
         else:
             np.testing.assert_allclose(out["to_world"], rectangle_matrix(sh["center"], sh["edge_u"], sh["edge_v"]))
         if sh["bsdf"]["type"] == "mirror":
