@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 
 import jaxfog as jf
-from jaxfog._mitsuba import import_mitsuba, look_at_matrix, rectangle_matrix
+from jaxfog._mitsuba import TABPHASE_SIZE, import_mitsuba, look_at_matrix, rectangle_matrix, tabphase_error
 
 REPO = Path(__file__).resolve().parent.parent
 SCENES = sorted((REPO / "data_synthetic" / "scenes").glob("*.json"))
-NO_MITSUBA_PHASE = ("droplet", "draine")
-HG_GREY_SCENES = [p for p in SCENES if (lambda m: m is not None and "g" in m and not isinstance(m["sigma_t"], list))(
+NO_MITSUBA_PHASE = ("draine",)
+HG_GREY_SCENES = [p for p in SCENES if (lambda m: m is not None and "g" in m and "sigma_t" in m and not isinstance(m["sigma_t"], list))(
     json.loads(p.read_text()).get("medium"))]
 """The shipped scenes with a grey Henyey–Greenstein medium (the field-by-field check below assumes them)."""
-"""Phase functions `to_mitsuba` has no counterpart for (a `tabphase` of their pdf is not written): it refuses them."""
+"""Phase functions `to_mitsuba` has no counterpart for: it refuses them (the droplet model goes as a `tabphase`)."""
 MATRIX = lambda m: m  # noqa: E731  (keep to_world as numpy matrices, whether or not Mitsuba is imported)
 
 
@@ -34,7 +34,7 @@ def _rgb(x):
 
 
 # ------------------------------------------------------------------------------------------ the dict, no Mitsuba
-def test_two_term_hg_is_a_blendphase_and_droplets_are_refused():
+def test_two_term_hg_is_a_blendphase_and_droplets_are_a_tabphase():
     data = json.loads((REPO / "data_synthetic" / "scenes" / "spot_fog.json").read_text())
     data["medium"] = {"sigma_t": [0.5, 1.5, 3.0], "albedo": 0.9,
                       "phase": {"type": "two_term_hg", "g1": 0.8, "g2": -0.4, "w": 0.7}}
@@ -42,8 +42,15 @@ def test_two_term_hg_is_a_blendphase_and_droplets_are_refused():
     assert fog["phase"] == {"type": "blendphase", "weight": pytest.approx(0.3), "phase1": {"type": "hg", "g": 0.8},
                             "phase2": {"type": "hg", "g": -0.4}}
     data["medium"]["phase"] = {"type": "droplet", "diameter": 10.0}
-    with pytest.raises(ValueError, match="no Mitsuba phase function"):
-        jf.to_mitsuba(data, transform=MATRIX)
+    phase = jf.to_mitsuba(data, transform=MATRIX)["fog"]["phase"]
+    assert phase["type"] == "tabphase"
+    values = np.array([float(v) for v in phase["values"].split(",")])
+    assert len(values) == TABPHASE_SIZE and np.all(values > 0)
+    # physics convention: the last value is cos theta = 1, the forward peak; the table is jaxfog's pdf there
+    peak = float(jf.Droplet(10.0).eval_polar(0.0))
+    assert values.argmax() == len(values) - 1 and values[-1] == pytest.approx(peak, rel=1e-6)
+    assert values[0] == pytest.approx(float(jf.Droplet(10.0).eval_polar(2.0)), rel=1e-6)
+    assert tabphase_error(10.0) < 5e-3  # integral of |p_table - p| over the sphere (docs/results/fit_models.md)
 
 
 @pytest.mark.parametrize("path", HG_GREY_SCENES, ids=lambda p: p.stem)
@@ -166,8 +173,9 @@ def test_look_at_matrix_is_mitsubas(mi):
 def test_mitsuba_loads_every_shipped_scene(mi):
     for path in SCENES:
         data = jf.load_scene(path, ["camera.width=8", "camera.height=8"]).data
-        if ((data.get("medium") or {}).get("phase") or {}).get("type") in NO_MITSUBA_PHASE:
-            continue
+        med = data.get("medium") or {}
+        if (med.get("phase") or {}).get("type") in NO_MITSUBA_PHASE or med.get("type", "homogeneous") != "homogeneous":
+            continue  # height fog goes to Mitsuba as a gridvolume (docs/results/height_fog), not through to_mitsuba
         scene = mi.load_dict(jf.to_mitsuba(data))  # Mitsuba imported with a variant: ScalarTransform4f by default
         assert len(scene.emitters()) == len(data["lights"]), path.name
         assert [int(x) for x in scene.sensors()[0].film().size()] == [8, 8]
