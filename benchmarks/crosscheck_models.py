@@ -92,6 +92,7 @@ def main(argv=None) -> int:
         z = (j["mean"] - m["mean"]) / np.sqrt(j["se"] ** 2 + m["se"] ** 2)
         zb = (j["block_mean"] - m["block_mean"]) / np.sqrt(j["block_se"] ** 2 + m["block_se"] ** 2)
         res = {"scene": path, "overrides": over, "what": what, "mitsuba_integrator": integrator,
+               "images": args.images, "spp": args.spp, "spp_mitsuba": args.spp_mitsuba,
                "jaxfog": {"mean": j["mean"].tolist(), "se": j["se"].tolist()},
                "mitsuba": {"mean": m["mean"].tolist(), "se": m["se"].tolist()},
                "rel_diff": ((j["mean"] - m["mean"]) / m["mean"]).tolist(), "z": z.tolist(),
