@@ -247,6 +247,10 @@ def _run(args) -> int:
     result = fit_views(views, names, init, cfg, log=log)
 
     truth = truths[0] if truths and all(t == truths[0] for t in truths) else {}
+    for f in ("sigma_t", "albedo"):  # a grey truth is every channel's truth (per-channel fits: sigma_t[r] ...)
+        if isinstance(truth.get(f), (int, float)):
+            for c in "rgb":
+                truth.setdefault(f"{f}[{c}]", truth[f])
     print_table(result, truth)
     payload = result.to_json()
     payload.update({"targets": [v.name for v in views], "truth": truth, "spp": args.spp, "seed": args.seed,

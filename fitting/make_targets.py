@@ -38,6 +38,16 @@ HEIGHT_TRUTHS = {
 }
 HEIGHT_VIEWS = ("height_fog_ground", "height_fog_above")
 """Height-fog targets (issue 15): the view along the ground and the view from above pin H together."""
+MODEL_GROUPS = {
+    # issue 14: chromatic media and the new phase functions; 32 x 32 views, max_depth 3 (docs/results/fit_models.md)
+    "rgb_haze": ({"sigma_t[r]": 0.3, "sigma_t[g]": 0.5, "sigma_t[b]": 0.8, "g": 0.5, "albedo": 0.9},
+                 "chromatic haze, extinction rising from red to blue, HG g 0.5", ("chromatic_fit_side", "chromatic_fit_low")),
+    "droplet_8um": ({"diameter": 8.0, "sigma_t": 0.3, "albedo": 0.9}, "fog of 8 um droplets (Jendersie & d'Eon 2023)",
+                    ("droplet_fit_backlit", "droplet_fit_side")),
+    "two_term": ({"g1": 0.8, "g2": -0.4, "w": 0.7, "sigma_t": 0.5, "albedo": 0.9},
+                 "two-term HG fog: forward lobe 0.8 (weight 0.7), backward lobe -0.4", ("twoterm_fit_backlit", "twoterm_fit_side")),
+}
+"""Targets of the chromatic and phase-function fits (issue 14), seeds after the height-fog ones."""
 
 
 def main(argv=None) -> int:
@@ -56,6 +66,7 @@ def main(argv=None) -> int:
     seed = 10_000
     groups = [(name, value, VIEWS) for name, value in TRUTHS.items()]
     groups += [(name, value, HEIGHT_VIEWS) for name, value in HEIGHT_TRUTHS.items()]
+    groups += [(name, (truth, desc), views) for name, (truth, desc, views) in MODEL_GROUPS.items()]
     for tname, (truth, desc), views in groups:
         for view in views:
             seed += 1

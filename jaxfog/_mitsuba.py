@@ -4,7 +4,8 @@
 renders it (it needs Mitsuba). How each part maps is in `docs/conventions.md` ("Mitsuba 3"); in short:
 
 - camera: `perspective` with `fov_axis = "x"`, `to_world = look_at(origin, target, up)`, `hdrfilm` with a box filter;
-- medium: `homogeneous` (`sigma_t`, `albedo`; phase `hg` with `g`, or `rayleigh`) filling a cube of side `extent`
+- medium: `homogeneous` (`sigma_t`, `albedo`; phase `hg` with `g`, `rayleigh`, two-term HG as `blendphase` of two
+  `hg`, fog droplets as a `tabphase` of jaxfog's own pdf; Draine alone is refused) filling a cube of side `extent`
   around the camera with a `null` BSDF; the sensor's medium and every shape's exterior medium;
 - rectangles: `rectangle` with `to_world` columns `(edge_u / 2, edge_v / 2, normal, center)`, so Mitsuba's local +z
   normal is jaxfog's front normal `normalize(cross(edge_u, edge_v))`; spheres: `sphere`; meshes: `ply` / `obj`
@@ -111,7 +112,51 @@ def _phase(med: dict) -> dict:
     if phase["type"] == "two_term_hg":  # w HG(g1) + (1 - w) HG(g2); blendphase's weight is that of phase2
         return {"type": "blendphase", "weight": 1.0 - float(phase["w"]),
                 "phase1": {"type": "hg", "g": float(phase["g1"])}, "phase2": {"type": "hg", "g": float(phase["g2"])}}
+    if phase["type"] == "droplet":
+        return {"type": "tabphase", "values": ",".join(f"{v:.9g}" for v in droplet_table(float(phase["diameter"])))}
     raise ValueError(f"to_mitsuba: no Mitsuba phase function for medium.phase.type {phase['type']!r}")
+
+
+TABPHASE_SIZE = 2**17 + 1
+"""Entries of the `tabphase` table of the droplet phase function (nodes at cos theta = -1 + 2 i / (n - 1), spacing
+1.5e-5: the forward peak of d = 5..50 um droplets, HG with g_HG = 0.97..0.998, is 1 - g_HG ~ 1e-3..0.03 rad wide, i.e.
+(1 - g_HG)^2 / 2 ~ 2e-6..5e-4 in cos). The integral of |p_table - p| over the sphere (`tabphase_error`) is 6e-5 at
+5 um, 7e-4 at 8 um, 2e-3 at 10 um, 0.04 at 20 um and 0.5 at 50 um, where the regular table cannot resolve the peak
+(docs/results/fit_models.md); about 1.8 MB of text per table."""
+
+
+def droplet_table(diameter: float, n: int = TABPHASE_SIZE) -> np.ndarray:
+    """jaxfog's droplet pdf (1/sr) at Mitsuba `tabphase`'s nodes. tabphase (src/phase/tabphase.cpp) lays its values
+    out regularly over cos theta in [-1, 1] in the *physics* convention, cos theta = 1 forward (it evaluates at
+    `-dot(wo, wi)` with Mitsuba's wi pointing away from the interaction point), which is jaxfog's convention
+    (docs/conventions.md: cos theta = 1 is forward scattering); the last value is the forward peak. tabphase
+    interpolates linearly in cos theta and renormalises the table."""
+    import jax.numpy as jnp
+
+    from ._phase import Droplet
+
+    omc = np.arange(n - 1, -1, -1, dtype=np.float64) * (2.0 / (n - 1))  # 1 - mu, exact at the forward end
+    return np.asarray(Droplet(diameter).eval_polar(jnp.asarray(omc, jnp.float32)), np.float64)
+
+
+def tabphase_error(diameter: float, n: int = TABPHASE_SIZE, sub: int = 16) -> float:
+    """Integral over the sphere of |p_table - p| (a fraction of the phase function's integral, 1) for the droplet
+    `tabphase` table: p_table is the linear interpolant of the table, renormalised as tabphase does; each cell is
+    sampled at `sub` points (midpoint rule in cos theta)."""
+    import jax.numpy as jnp
+
+    from ._phase import Droplet
+
+    table = droplet_table(diameter, n)
+    h = 2.0 / (n - 1)
+    norm = 2.0 * np.pi * h * (table.sum() - 0.5 * (table[0] + table[-1]))  # trapezoid = integral of the interpolant
+    t = (np.arange(sub) + 0.5) / sub
+    omc_nodes = np.arange(n - 1, -1, -1, dtype=np.float64) * h
+    # cell i spans omc_nodes[i] .. omc_nodes[i + 1] (cos increasing)
+    omc = omc_nodes[:-1, None] - t[None, :] * h
+    exact = np.asarray(Droplet(diameter).eval_polar(jnp.asarray(omc.ravel(), jnp.float32)), np.float64).reshape(omc.shape)
+    interp = (table[:-1, None] * (1 - t) + table[1:, None] * t) / norm
+    return float(2.0 * np.pi * h / sub * np.abs(interp - exact).sum())
 
 
 def _bsdf(b: dict, where: str) -> dict:
