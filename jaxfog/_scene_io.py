@@ -206,9 +206,7 @@ def _build_homogeneous(sigma_t, albedo, g, phase, extent):
     # array would compile a second program).
     if phase is None:
         phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
-    # a single number is a grey medium by construction: one sampling rate (spectral MIS would cost ~10% for nothing)
-    grey = not isinstance(sigma_t, (list, tuple))
-    return HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=phase, extent=float(extent), spectral_mis=not grey)
+    return HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=phase, extent=float(extent))
 
 
 def _build_height(sigma_0, height_scale, base_height, albedo, g, phase, up, extent):

@@ -236,7 +236,7 @@ def test_derivatives_match_finite_differences_multiple_scattering(name, estimato
 
 
 # ------------------------------------------------------------------- proposal: fixed key, AD vs its own FD
-@pytest.mark.parametrize("name", ["spot_fog", "backlit"])
+@pytest.mark.parametrize("name", ["spot_fog", pytest.param("backlit", marks=pytest.mark.slow)])
 def test_proposal_fixed_key_ad_equals_its_finite_differences(name):
     """For a fixed key and reference, the "proposal" image is a smooth deterministic function of theta: forward-mode
     and reverse-mode derivatives of the reductions equal its 4-point finite differences (steps 2% of theta; Taylor

@@ -178,7 +178,7 @@ def test_values_and_gradients_finite(estimator):
         f"{values[densest][:, :N_CAMERA_RAYS].max():.3g}")
 
 
-@pytest.mark.parametrize("estimator", ["detached", "reparam", "proposal"])
+@pytest.mark.parametrize("estimator", ["detached", pytest.param("reparam", marks=pytest.mark.slow), "proposal"])
 def test_forward_equals_reverse(estimator):
     """The suite's one forward == reverse test (for every estimator, over the whole grid of hard parameters).
 

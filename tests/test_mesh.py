@@ -285,6 +285,7 @@ def _grad_scene(mesh, max_depth):
                     max_depth=max_depth)
 
 
+@pytest.mark.slow
 def test_mesh_scene_reverse_mode_gradient(torus):
     """jax.grad of a mesh scene's image mean w.r.t. sigma_t runs (the BVH's while_loop carries no derivative) and is
     finite and negative (denser fog, darker image here); forward = reverse mode is the slow test below."""

@@ -18,7 +18,7 @@ from helpers import REPO
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
 IMPORT_TO_DIST = {"OpenImageIO": "openimageio", "drjit": "mitsuba"}
 """Import names whose distribution has another name (drjit comes with mitsuba)."""
-LOCAL = {"jaxfog", "fitting", "benchmarks", "helpers", "conftest"}
+LOCAL = {"jaxfog", "fitting", "benchmarks", "helpers", "conftest", "make_mesh_fog"}
 
 
 def _requirements(items) -> dict[str, str]:
