@@ -1,0 +1,69 @@
+"""The Fisher-information report (fitting/information.py) on synthetic Jacobians: no rendering."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fitting.information import combination, fisher_report, instead, relative_scales
+
+
+def test_relative_scales():
+    # sigma_t (positive) in fractions of its value, g (bounded) in its own units
+    np.testing.assert_allclose(relative_scales(["sigma_t", "g"], {"sigma_t": 0.5, "g": 0.6}), [0.5, 1.0])
+
+
+def test_eigen_directions_of_a_ridge():
+    # Pixels that see (sigma_t/0.5 + 0.8 g) strongly and the orthogonal combination weakly: in relative units
+    # z = (sigma_t / 0.5, g), J_z = a u^T + b w^T with u ~ (1, 0.8), w ~ (-0.8, 1)
+    rng = np.random.default_rng(0)
+    n = 400
+    u = np.array([1.0, 0.8]) / np.hypot(1.0, 0.8)
+    w = np.array([-0.8, 1.0]) / np.hypot(1.0, 0.8)
+    Jz = np.outer(rng.normal(size=n) * 5.0, u) + np.outer(rng.normal(size=n) * 0.1, w)
+    Jz -= 0  # noise variance 1 per pixel: F = J^T J
+    D = np.array([0.5, 1.0])
+    J_theta = Jz / D  # d pixel / d theta = d pixel / d z * dz/dtheta
+    F = J_theta.T @ J_theta
+    rep = fisher_report(["sigma_t", "g"], {"sigma_t": 0.5, "g": 0.6}, F)
+    best, weak = rep["directions"]
+    np.testing.assert_allclose(np.abs(best["vector"]), np.abs(u), atol=0.01)
+    np.testing.assert_allclose(np.abs(weak["vector"]), np.abs(w), atol=0.01)
+    assert best["combination"] == "sigma_t + 0.8 g"
+    assert weak["combination"].startswith("g - 0.8 sigma_t")
+    # standard errors along the directions: 1 / sqrt(n * variance of the coefficient)
+    np.testing.assert_allclose(best["se"], 1 / np.sqrt(n * 25.0), rtol=0.1)
+    np.testing.assert_allclose(weak["se"], 1 / np.sqrt(n * 0.01), rtol=0.1)
+    assert best["words"] == "well determined" and weak["words"] == "weakly determined"
+    assert "sigma_t and g are well determined together along sigma_t + 0.8 g" in rep["summary"][0]
+    assert "weakly determined" in rep["summary"][1]
+    # the eigen-directions reproduce the covariance: se along sigma_t alone from F^-1
+    cov = np.linalg.inv(F)
+    V = np.array([d["vector"] for d in rep["directions"]]).T
+    cov_z = V @ np.diag(np.array([d["se"] for d in rep["directions"]]) ** 2) @ V.T
+    np.testing.assert_allclose(cov_z, cov / np.outer(D, D), rtol=1e-6)
+    # g on its own is too uncertain: the report names the combination that is determined instead
+    msg = instead(["sigma_t", "g"], {"sigma_t": 0.5, "g": 0.6}, F, ["g"])["g"]
+    assert "sigma_t + 0.8 g" in msg and "instead" in msg
+
+
+def test_independent_parameters_are_named_alone():
+    F = np.diag([1e6, 1e2])  # sigma_t to 0.1% of 1 (relative), g to 0.1
+    rep = fisher_report(["sigma_t", "g"], {"sigma_t": 1.0, "g": 0.0}, F)
+    assert rep["summary"][0].startswith("sigma_t alone is well determined")
+    assert rep["summary"][1].startswith("g alone is determined")
+    msg = instead(["sigma_t", "g"], {"sigma_t": 1.0, "g": 0.0}, np.diag([1e6, 1.0]), ["g"])["g"]
+    assert "not pinned down, alone or in any combination" in msg
+
+
+def test_singular_and_non_finite_information():
+    F = np.array([[1.0, 1.0], [1.0, 1.0]]) * 1e4  # only sigma_t + g is seen (relative units, sigma_t = 1)
+    rep = fisher_report(["sigma_t", "g"], {"sigma_t": 1.0, "g": 0.0}, F)
+    assert rep["directions"][0]["combination"] == "sigma_t + 1 g" or rep["directions"][0]["combination"] == "g + 1 sigma_t"
+    assert rep["directions"][1]["words"] in ("not determined", "weakly determined")
+    rep = fisher_report(["sigma_t"], {"sigma_t": 1.0}, [[np.nan]])
+    assert rep["directions"] == [] and "not finite" in rep["summary"][0]
+
+
+def test_combination_text():
+    assert combination(["a", "b", "c"], [0.1, -1.0, 0.5]) == "b - 0.5 c"
+    assert combination(["a", "b"], [-2.0, -1.0]) == "a + 0.5 b"
