@@ -67,3 +67,45 @@ def test_singular_and_non_finite_information():
 def test_combination_text():
     assert combination(["a", "b", "c"], [0.1, -1.0, 0.5]) == "b - 0.5 c"
     assert combination(["a", "b"], [-2.0, -1.0]) == "a + 0.5 b"
+
+
+def test_block_noise_estimates_the_pooled_pixel_variance():
+    from fitting.core import block_noise, pool
+
+    rng = np.random.default_rng(1)
+    H = W = 64
+    yy, xx = np.mgrid[0:H, 0:W]
+    ramp = (0.5 + 0.01 * xx + 0.02 * yy)[..., None] * np.ones(3)  # a linear trend: second differences cancel it
+    assert np.max(block_noise(ramp, 8)) < 1e-20
+    sd = 0.1
+    noisy = ramp + rng.normal(scale=sd, size=ramp.shape)
+    v = block_noise(noisy, 8)
+    assert v.shape == pool(noisy, 8).shape
+    np.testing.assert_allclose(np.mean(v), sd ** 2 / 64, rtol=0.05)  # a pooled pixel: v / f^2
+
+
+def test_mahalanobis_and_chi2_quantile():
+    from fitting.core import _chi2_quantile, _mahalanobis, _rounds_cov
+
+    assert abs(_chi2_quantile(1, 0.95) - 3.841) < 1e-3 and abs(_chi2_quantile(2, 0.95) - 5.991) < 1e-3
+    assert abs(_chi2_quantile(3, 0.95) / 7.8147 - 1) < 0.006 and abs(_chi2_quantile(10, 0.95) / 18.307 - 1) < 0.006
+    C = np.diag([4.0, 1.0])
+    assert abs(_mahalanobis([2.0, 0.0], C) - 1.0) < 1e-12
+    assert _mahalanobis([1.0, 0.0], np.full((2, 2), np.inf)) == np.inf
+    # rounds scattered 3x wider than C_R says: the mean's covariance follows the spread, / m
+    rng = np.random.default_rng(2)
+    Y = rng.normal(scale=3.0, size=(400, 2))
+    Cm = _rounds_cov(Y, np.eye(2))
+    np.testing.assert_allclose(np.diag(Cm) * 400, 9.0, rtol=0.2)
+
+
+def test_compilation_cache_dir(monkeypatch, tmp_path):
+    from jaxfog._cache import cache_dir
+
+    monkeypatch.setenv("JAXFOG_CACHE_DIR", "off")
+    assert cache_dir() is None
+    monkeypatch.setenv("JAXFOG_CACHE_DIR", str(tmp_path / "c"))
+    assert cache_dir() == str(tmp_path / "c")
+    monkeypatch.delenv("JAXFOG_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert cache_dir() == str(tmp_path / "jaxfog" / "xla")
