@@ -118,7 +118,13 @@ class FitConfig:
     (0.499, 0.610) to (0.149, -0.933), and the fit failed; ordinary averaged steps were 0.6-9 long over the shipped
     targets, so a bound of 6 rejected ordinary rounds and moved a `denser` fit from +0.1% to +1.4%). A rejected
     round's Jacobians are left out of the averages (a firefly can sit in them as well as in the residual); `decorrelate`: LM residuals take their value at the reference from a second,
-    independent key (`Problem.offsets`; off = the plain fixed-key residual, biased by the render's noise)."""
+    independent key (`Problem.offsets`; off = the plain fixed-key residual, biased by the render's noise).
+
+    The loop (docs/fitting.md): `burn_in` is the most approach rounds (LM, value render at `approach_spp_factor` x
+    spp; the approach ends earlier when a step is within its own noise); then averaging rounds, at least
+    `repeats + 1`, until the step is within its noise and the standard error is at most `precision` (relative
+    units) or limited by the target's noise. `noise_weights`: per-view weights from the noise model in the averaging
+    rounds (off by default)."""
 
     spp: int = 8
     seed: int = 0
