@@ -154,7 +154,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the image size and leaves at least 8 px a side: few pixels with many samples each keep "
                         "the Jacobian's noise low, docs/results/fit_sweep)")
     p.add_argument("--rounds", type=int, default=20, help="re-centring rounds at most, each with a fresh key (default 20)")
-    p.add_argument("--repeats", type=int, default=7, help="the estimate is the mean of the last REPEATS+1 rounds (default 7)")
+    p.add_argument("--repeats", type=int, default=2,
+                   help="at least REPEATS+1 averaging rounds before the stopping rule may stop (default 2)")
     p.add_argument("--value-spp-factor", type=int, default=None, metavar="K",
                    help="each round's residual value is rendered at K x --spp (default: FitConfig's)")
     p.add_argument("--steps", choices=["averaged", "lm"], default="averaged",
@@ -176,6 +177,9 @@ def main(argv=None) -> int:
     from jaxfog._devices import use_cpu_cores
 
     use_cpu_cores()  # every core as a JAX device (warns if JAX has already started with another count)
+    from jaxfog._cache import use_compilation_cache
+
+    use_compilation_cache()  # compiled programs kept on disk: a second run does not compile again ($JAXFOG_CACHE_DIR)
     try:
         return _run(args)
     except (FitError, LimitError) as e:
@@ -286,6 +290,9 @@ def print_table(result, truth: dict) -> None:
         c = np.asarray(result.correlation)
         pairs = [f"{a}~{b} {c[i, j]:+.2f}" for i, a in enumerate(result.names) for j, b in enumerate(result.names) if j > i]
         print("correlation of the estimates (from the Jacobian): " + ", ".join(pairs))
+    info = getattr(result, "information", None) or {}
+    for line in info.get("summary", []):
+        print("what the views determine: " + line)
     for m in result.messages:
         print("note: " + m)
 

@@ -238,6 +238,9 @@ def main(argv: list[str] | None = None) -> int:
     from jaxfog._devices import use_cpu_cores
 
     use_cpu_cores()  # every core as a JAX device (warns if JAX has already started with another count)
+    from jaxfog._cache import use_compilation_cache
+
+    use_compilation_cache()  # compiled programs kept on disk: a second run does not compile again ($JAXFOG_CACHE_DIR)
     from ._validate import LimitError
 
     try:

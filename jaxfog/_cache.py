@@ -1,0 +1,51 @@
+"""JAX's persistent compilation cache for the command-line entry points, so that a second run of the same job does
+not compile its programs again (XLA compiles each render program in seconds to tens of seconds on a CPU; the cache
+keeps the compiled executables on disk, keyed by the program, the JAX/XLA version and the devices).
+
+The cache directory is `$JAXFOG_CACHE_DIR` if set, else `$XDG_CACHE_HOME/jaxfog/xla` (default `~/.cache/jaxfog/xla`);
+`JAXFOG_CACHE_DIR=off` (or `0`, `none`, empty) disables it. Every program that takes at least
+`MIN_COMPILE_TIME_S` to compile is cached.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+MIN_COMPILE_TIME_S = 0.1
+"""Programs that compile faster than this are not written to the cache: reading an entry back costs ~1-10 ms,
+while the fit's small programs (parameter transforms, pooling) compile in tens of milliseconds each and there are
+few of them; the render programs, which matter, take seconds."""
+
+_OFF = {"", "0", "off", "none", "false", "no"}
+
+
+def cache_dir() -> str | None:
+    """The persistent cache directory the entry points use, or None when `JAXFOG_CACHE_DIR` disables it."""
+    env = os.environ.get("JAXFOG_CACHE_DIR")
+    if env is not None:
+        return None if env.strip().lower() in _OFF else os.path.expanduser(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "jaxfog", "xla")
+
+
+def use_compilation_cache(path: str | None = None) -> str | None:
+    """Turn on JAX's persistent compilation cache in `path` (default: `cache_dir()`). Returns the directory in use, or
+    None when disabled or when the directory cannot be created (then it warns and the run compiles as usual)."""
+    import jax
+
+    if jax.config.jax_compilation_cache_dir and path is None:  # set by the caller already: keep theirs
+        return jax.config.jax_compilation_cache_dir
+    path = path if path is not None else cache_dir()
+    if path is None:
+        return None
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as e:
+        warnings.warn(f"compilation cache disabled: cannot create {path}: {e.strerror or e}", RuntimeWarning,
+                      stacklevel=2)
+        return None
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_S)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
