@@ -582,7 +582,10 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     y_hat = jnp.asarray(y_mean, jnp.float32)
     values = {n: float(est[i]) for i, n in enumerate(names)}
     with np.errstate(invalid="ignore", divide="ignore"):
-        fisher = np.linalg.inv(cov) if np.all(np.isfinite(cov)) else np.full((k, k), np.nan)
+        try:
+            fisher = np.linalg.inv(cov) if np.all(np.isfinite(cov)) else np.full((k, k), np.nan)
+        except np.linalg.LinAlgError:  # e.g. a parameter saturated at its bound (d param / du = 0): no information
+            fisher = np.full((k, k), np.nan)
     information = fisher_report(names, values, fisher)
     for line in information["summary"]:
         log("information: " + line)

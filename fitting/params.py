@@ -56,7 +56,17 @@ def _sigmoid(u):
 LOG = Transform(jnp.log, jnp.exp, np.exp)
 """(0, inf) <-> R: `u = log x`."""
 
-ATANH = Transform(jnp.arctanh, jnp.tanh, lambda u: 1.0 - np.tanh(u) ** 2)
+ONE_BELOW = float(np.nextafter(np.float32(1.0), np.float32(0.0)))
+"""The largest float32 below 1."""
+
+
+def _tanh_open(u):
+    """`tanh(u)` kept inside the open interval (-1, 1) in float32: for |u| > ~9 `tanh` rounds to +-1, a value the
+    phase functions refuse (a fit that runs away toward |g| = 1 must report that, not crash)."""
+    return jnp.clip(jnp.tanh(u), -ONE_BELOW, ONE_BELOW)
+
+
+ATANH = Transform(jnp.arctanh, _tanh_open, lambda u: 1.0 - np.tanh(u) ** 2)
 """(-1, 1) <-> R: `u = atanh x`."""
 
 LOGIT = Transform(_logit, _sigmoid, lambda u: (1.0 / (1.0 + np.exp(-u))) * (1.0 - 1.0 / (1.0 + np.exp(-u))))

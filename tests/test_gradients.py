@@ -312,6 +312,7 @@ def _reparam_vs_detached(max_depth: int, spp: int, n_keys: int):
     return d.mean(0), se, z, info
 
 
+@pytest.mark.slow
 def test_reparam_is_unbiased_without_edges():
     """Mean over keys of the "reparam" derivatives (mean image and blocks, 5 parameters) equals that of "detached"
     within |z| <= 5 (independent keys, SEs from the spread over keys). Able to fail: the SE of the comparison for

@@ -157,7 +157,8 @@ def grid_results(estimator: str):
     return [(label, run(estimator, GRID, ref, seed=1)) for label, ref in _runs(estimator)]
 
 
-@pytest.mark.parametrize("estimator", ["detached", pytest.param("reparam", marks=pytest.mark.slow), "proposal"])
+@pytest.mark.parametrize("estimator", ["detached", pytest.param("reparam", marks=pytest.mark.slow),
+                                       pytest.param("proposal", marks=pytest.mark.slow)])
 def test_values_and_gradients_finite(estimator):
     for label, (values, jac, rev) in grid_results(estimator):
         for name, arr in (("value", values), ("forward-mode Jacobian", jac), ("reverse-mode gradient", rev)):
@@ -257,7 +258,7 @@ def _fd_at_zero(call: int) -> np.ndarray:
     return np.concatenate(out)
 
 
-@pytest.mark.parametrize("estimator", ["detached", "reparam", "proposal"])
+@pytest.mark.parametrize("estimator", ["detached", pytest.param("reparam", marks=pytest.mark.slow), "proposal"])
 def test_sigma_t_derivative_at_zero(estimator):
     """AD derivative of the mean camera-ray radiance w.r.t. sigma_t at sigma_t = 0 vs one-sided finite differences
     of the plain forward render (its expected image), with the same keys: the test is on the per-key differences
