@@ -224,3 +224,14 @@ def assert_same_render_up_to_rounding(a, b, *, spp: int, label: str = "", scale=
     if scale is None:
         assert np.all(diff <= np.maximum(np.abs(a), np.abs(b)) + tol), "beyond the flip bound: " + info
     return int(px_bad.sum())
+
+
+def image_and_quadrant_means(imgs):
+    """For `(n, H, W, 3)` independent images (H, W even): per image the mean and the four quadrant means (channels
+    averaged), then their mean over images and its standard error: `(mean (5,), se (5,))`. Used to compare two
+    renderers' independent images with z = difference / combined SE."""
+    n, H, W = imgs.shape[:3]
+    g = imgs.mean(-1)
+    q = g.reshape(n, 2, H // 2, 2, W // 2).mean(axis=(2, 4)).reshape(n, 4)
+    v = np.concatenate([imgs.reshape(n, -1).mean(1, keepdims=True), q], axis=1)
+    return v.mean(0), v.std(0, ddof=1) / np.sqrt(n)

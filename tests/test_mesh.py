@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import jaxfog as jf
+from helpers import image_and_quadrant_means
 from jaxfog._mesh import (
     MeshError,
     brute_force_nearest,
@@ -449,13 +450,7 @@ def test_mesh_fog_agrees_with_mitsuba():
     ours = np.stack([np.asarray(jf.render(scene, jax.random.key(k), spp), np.float64) for k in range(n)])
     theirs = np.stack([jf.render_mitsuba(path, spp, seed=k, overrides=over).astype(np.float64) for k in range(n)])
 
-    def stats(imgs):
-        g = imgs.mean(-1)
-        q = g.reshape(n, 2, 8, 2, 8).mean(axis=(2, 4)).reshape(n, 4)
-        v = np.concatenate([imgs.reshape(n, -1).mean(1, keepdims=True), q], axis=1)
-        return v.mean(0), v.std(0, ddof=1) / math.sqrt(n)
-
-    (m_j, se_j), (m_m, se_m) = stats(ours), stats(theirs)
+    (m_j, se_j), (m_m, se_m) = image_and_quadrant_means(ours), image_and_quadrant_means(theirs)
     z = (m_j - m_m) / np.sqrt(se_j**2 + se_m**2)
     print("jaxfog", m_j, "+-", se_j, "\nMitsuba", m_m, "+-", se_m, "\nz", z)
     assert m_j[0] > 0 and np.all(np.abs(z) < 5), f"jaxfog {m_j} +- {se_j}, Mitsuba {m_m} +- {se_m}, z {z}"

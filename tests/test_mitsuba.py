@@ -4,7 +4,6 @@ installed (optional extra `compare`), `render_mitsuba` against `jaxfog.render` o
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import jax
@@ -12,6 +11,7 @@ import numpy as np
 import pytest
 
 import jaxfog as jf
+from helpers import image_and_quadrant_means
 from jaxfog._mesh import transform_matrix
 from jaxfog._mitsuba import TABPHASE_SIZE, import_mitsuba, look_at_matrix, rectangle_matrix, tabphase_error
 
@@ -202,13 +202,7 @@ def test_render_mitsuba_agrees_with_jaxfog(mi):
     theirs = np.stack([jf.render_mitsuba(path, spp, seed=k, overrides=over).astype(np.float64) for k in range(n)])
     assert theirs.shape == ours.shape == (n, 16, 16, 3)
 
-    def stats(imgs):  # per image: mean, then the 2 x 2 quadrant means (channels averaged)
-        g = imgs.mean(-1)
-        q = g.reshape(n, 2, 8, 2, 8).mean(axis=(2, 4)).reshape(n, 4)
-        v = np.concatenate([imgs.reshape(n, -1).mean(1, keepdims=True), q], axis=1)
-        return v.mean(0), v.std(0, ddof=1) / math.sqrt(n)
-
-    (m_j, se_j), (m_m, se_m) = stats(ours), stats(theirs)
+    (m_j, se_j), (m_m, se_m) = image_and_quadrant_means(ours), image_and_quadrant_means(theirs)
     z = (m_j - m_m) / np.sqrt(se_j**2 + se_m**2)
     assert m_j[0] > 0 and np.all(np.isfinite(z)), (m_j, m_m)
     assert np.all(np.abs(z) < 5), f"jaxfog {m_j} +- {se_j}, Mitsuba {m_m} +- {se_m}, z {z}"
