@@ -614,7 +614,8 @@ def _fd_samples(spp, n_keys):
     return np.stack(out)  # (keys, 4 params, 3 reductions)
 
 
-@pytest.mark.parametrize("estimator", ["detached", pytest.param("proposal", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("estimator", ["detached", "proposal"])
 def test_gradients_match_finite_differences_of_expected_image(estimator):
     """d/d (sigma_0, H, h_0, albedo) of the mean image and its two halves (fog against the sky; floor lit by a spot
     and by the sun through the fog), max_depth 2, forward mode, 12 keys x 8 spp, against finite differences of the
