@@ -235,3 +235,18 @@ def image_and_quadrant_means(imgs):
     q = g.reshape(n, 2, H // 2, 2, W // 2).mean(axis=(2, 4)).reshape(n, 4)
     v = np.concatenate([imgs.reshape(n, -1).mean(1, keepdims=True), q], axis=1)
     return v.mean(0), v.std(0, ddof=1) / np.sqrt(n)
+
+
+def jaxfog_and_mitsuba_images(path, overrides, n: int, spp: int):
+    """`n` independent images of the scene file `path` (with `overrides`) from each renderer, `spp` samples each:
+    jaxfog with keys 0..n-1, Mitsuba (`jaxfog.render_mitsuba`, needs the compare extra) with seeds 0..n-1; two
+    float64 arrays `(n, H, W, 3)`."""
+    import jax
+
+    import jaxfog as jf
+
+    scene = jf.load_scene(path, overrides).scene
+    ours = np.stack([np.asarray(jf.render(scene, jax.random.key(k), spp), np.float64) for k in range(n)])
+    theirs = np.stack([jf.render_mitsuba(path, spp, seed=k, overrides=overrides).astype(np.float64)
+                       for k in range(n)])
+    return ours, theirs

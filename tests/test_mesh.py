@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import jaxfog as jf
-from helpers import image_and_quadrant_means
+from helpers import image_and_quadrant_means, jaxfog_and_mitsuba_images
 from jaxfog._mesh import (
     MeshError,
     brute_force_nearest,
@@ -446,9 +446,7 @@ def test_mesh_fog_agrees_with_mitsuba():
     path = REPO / "data_synthetic" / "scenes" / "mesh_fog.json"
     over = ["camera.width=16", "camera.height=16", "integrator.max_depth=4"]
     n, spp = 16, 8
-    scene = jf.load_scene(path, over).scene
-    ours = np.stack([np.asarray(jf.render(scene, jax.random.key(k), spp), np.float64) for k in range(n)])
-    theirs = np.stack([jf.render_mitsuba(path, spp, seed=k, overrides=over).astype(np.float64) for k in range(n)])
+    ours, theirs = jaxfog_and_mitsuba_images(path, over, n, spp)
 
     (m_j, se_j), (m_m, se_m) = image_and_quadrant_means(ours), image_and_quadrant_means(theirs)
     z = (m_j - m_m) / np.sqrt(se_j**2 + se_m**2)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxfog as jf
-from helpers import image_and_quadrant_means
+from helpers import image_and_quadrant_means, jaxfog_and_mitsuba_images
 from jaxfog._mesh import transform_matrix
 from jaxfog._mitsuba import TABPHASE_SIZE, import_mitsuba, look_at_matrix, rectangle_matrix, tabphase_error
 
@@ -197,9 +197,7 @@ def test_render_mitsuba_agrees_with_jaxfog(mi):
     path = REPO / "data_synthetic" / "scenes" / "spot_fog.json"
     over = ["camera.width=16", "camera.height=16", "integrator.max_depth=4"]
     n, spp = 16, 8
-    scene = jf.load_scene(path, over).scene
-    ours = np.stack([np.asarray(jf.render(scene, jax.random.key(k), spp), np.float64) for k in range(n)])
-    theirs = np.stack([jf.render_mitsuba(path, spp, seed=k, overrides=over).astype(np.float64) for k in range(n)])
+    ours, theirs = jaxfog_and_mitsuba_images(path, over, n, spp)
     assert theirs.shape == ours.shape == (n, 16, 16, 3)
 
     (m_j, se_j), (m_m, se_m) = image_and_quadrant_means(ours), image_and_quadrant_means(theirs)
