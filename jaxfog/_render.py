@@ -66,10 +66,10 @@ def items_per_call(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PATH
 
 def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, valid: Array,
                  options: SamplingOptions,
-                 proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS):
+                 proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS, moments: bool = False):
     """Sum of every pixel's radiance over the given work items, `(n_chunks * chunk, 3)` (rows past `H*W` belong to the
-    last chunk's padding). Item `i` traces chunk `chunk_ids[i]` of sample layer `layer_ids[i]`, one after the other;
-    items where `valid` is False add nothing. A padding row traces a real pixel (its index modulo `H*W`, so no NaN
+    last chunk's padding); with `moments`, also the sum of the squared radiance (same shape), as `(sum, sum_sq)`.
+    Item `i` traces chunk `chunk_ids[i]` of sample layer `layer_ids[i]`, one after the other; items where `valid` is False add nothing. A padding row traces a real pixel (its index modulo `H*W`, so no NaN
     can reach a gradient) with its own random numbers, and is dropped by the caller."""
     cam = scene.camera
     H, W = cam.height, cam.width
@@ -89,16 +89,19 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
         pixels = jnp.stack([cols, rows], axis=-1).astype(jnp.float32) + uniforms(k_pix, chunk, 2, row0)
         U = uniforms(k_path, chunk, n_iter * K, row0).reshape(chunk, n_iter, K)
         radiance = jnp.where(ok, jax.vmap(one_path)(pixels, U), 0.0)
-        part = jax.lax.dynamic_slice_in_dim(acc, row0, chunk) + radiance
-        return jax.lax.dynamic_update_slice_in_dim(acc, part, row0, axis=0), None
+        terms = (radiance, radiance * radiance) if moments else (radiance,)
+        add = lambda a, x: jax.lax.dynamic_update_slice_in_dim(
+            a, jax.lax.dynamic_slice_in_dim(a, row0, chunk) + x, row0, axis=0)
+        return tuple(add(a, x) for a, x in zip(acc, terms)), None
 
-    acc = jnp.zeros((n_ch * chunk, 3), jnp.float32)
+    acc = tuple(jnp.zeros((n_ch * chunk, 3), jnp.float32) for _ in range(2 if moments else 1))
     acc, _ = jax.lax.scan(step, acc, (layer_ids, chunk_ids, valid))
-    return acc
+    return acc if moments else acc[0]
 
 
 def _trace_items_unbounded(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, valid: Array,
-                           options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS):
+                           options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS,
+                           moments: bool = False):
     """`_trace_items` for paths of any length (`max_depth = -1`), with path regeneration.
 
     The items' paths form one queue (path `q` is row `q % chunk` of item `q // chunk`); `chunk` lanes trace one
@@ -140,7 +143,10 @@ def _trace_items_unbounded(scene: Scene, key: PRNGKeyArray, layer_ids: Array, ch
         U = jax.vmap(lambda it, r, bb: hashed_uniforms(words[it, 1], r, bb.astype(jnp.uint32) * K + cols))(item, row, b)
         new = jax.vmap(lambda st, bb, u: russian_roulette(tracer, bounce(tracer, st, bb, u), bb, u))(state, b, U)
         ended = state.alive & ~new.alive
-        acc = acc.at[jnp.where(ended, row, n_ch * chunk)].add(jnp.where(ended[:, None], new.L, 0.0), mode="drop")
+        slot = jnp.where(ended, row, n_ch * chunk)
+        L_end = jnp.where(ended[:, None], new.L, 0.0)
+        terms = (L_end, L_end * L_end) if moments else (L_end,)
+        acc = tuple(a.at[slot].add(x, mode="drop") for a, x in zip(acc, terms))
         return acc, new, row, item, b + 1, next_q + jnp.sum(take.astype(jnp.int32))
 
     def cond(c):
@@ -148,8 +154,10 @@ def _trace_items_unbounded(scene: Scene, key: PRNGKeyArray, layer_ids: Array, ch
 
     dead = jax.vmap(lambda q: start(q)[2])(jnp.zeros(chunk, jnp.int32))._replace(alive=jnp.zeros(chunk, bool))
     zero = jnp.zeros(chunk, jnp.uint32)
-    init = (jnp.zeros((n_ch * chunk, 3), jnp.float32), dead, zero, jnp.zeros(chunk, jnp.int32), zero, jnp.int32(0))
-    return jax.lax.while_loop(cond, body, init)[0]
+    acc = tuple(jnp.zeros((n_ch * chunk, 3), jnp.float32) for _ in range(2 if moments else 1))
+    init = (acc, dead, zero, jnp.zeros(chunk, jnp.int32), zero, jnp.int32(0))
+    acc = jax.lax.while_loop(cond, body, init)[0]
+    return acc if moments else acc[0]
 
 
 def sampling_options(sampling: SamplingOptions | None = None, **fields) -> SamplingOptions:
@@ -167,27 +175,30 @@ def sampling_options(sampling: SamplingOptions | None = None, **fields) -> Sampl
 
 @eqx.filter_jit
 def _render_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, n_valid: Array,
-                  options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1):
+                  options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1,
+                  moments: bool = False):
     """`_trace_items` over the work items (the first `n_valid` are real), split evenly across the first `n_devices`
     local devices (static; the number of items must be a multiple of it): one compiled program, each device scans
-    its share of the items, the shares are summed; returns `(H*W, 3)`. The items and their random numbers do not
+    its share of the items, the shares are summed; returns `(H*W, 3)` (with `moments`, a pair: the sums of the
+    radiance and of its square). The items and their random numbers do not
     depend on `n_devices`; only the float32 summation order does."""
     n_pix = scene.camera.width * scene.camera.height
     valid = jnp.arange(layer_ids.shape[0]) < n_valid
     trace = _trace_items_unbounded if scene.max_depth == -1 else _trace_items
     if n_devices == 1:
-        return trace(scene, key, layer_ids, chunk_ids, valid, options, proposal, chunk_paths)[:n_pix]
+        out = trace(scene, key, layer_ids, chunk_ids, valid, options, proposal, chunk_paths, moments)
+        return jax.tree.map(lambda a: a[:n_pix], out)
     mesh = Mesh(np.asarray(jax.local_devices()[:n_devices]), ("d",))
     arrays, static = eqx.partition((scene, key, proposal), eqx.is_array)
 
     def share(arrays, layers, chunks, ok):
         sc, k, prop = eqx.combine(arrays, static)
-        return trace(sc, k, layers, chunks, ok, options, prop, chunk_paths)[None]
+        return jax.tree.map(lambda a: a[None], trace(sc, k, layers, chunks, ok, options, prop, chunk_paths, moments))
 
     d = PartitionSpec("d")
     parts = jax.shard_map(share, mesh=mesh, in_specs=(PartitionSpec(), d, d, d), out_specs=d,
                           check_vma=False)(arrays, layer_ids, chunk_ids, valid)
-    return parts.sum(axis=0)[:n_pix]
+    return jax.tree.map(lambda a: a.sum(axis=0)[:n_pix], parts)
 
 
 def render(
@@ -205,7 +216,8 @@ def render(
     chunk_paths: int = DEFAULT_CHUNK_PATHS,
     devices: int | None = None,
     progress: Callable[[int, int], None] | None = None,
-) -> Float[Array, "H W 3"]:
+    variance: bool = False,
+) -> Float[Array, "H W 3"] | tuple[Float[Array, "H W 3"], Float[Array, "H W 3"]]:
     """Render `scene` with `spp` samples per pixel: linear RGB radiance, `(height, width, 3)` float32.
 
     **Arguments:**
@@ -222,24 +234,37 @@ def render(
     - `devices`: how many local devices share each batch's work (default: all of them; a CPU is one device
       unless `jaxfog.use_cpu_cores()` ran before JAX started, which the command-line entry points do).
 
+    - `variance`: also return each pixel's variance of the image's estimate, `(image, variance)`: the samples'
+      variance about their mean, divided by spp (unbiased; spp >= 2), in radiance squared. Its square root is the
+      pixel's standard error; with heavy-tailed (firefly) samples it is itself noisy.
+
     Differentiable with `jax.grad`, `jax.jvp`, `jax.jacfwd` with respect to the scene's array fields.
     """
     options = sampling_options(sampling, estimator=estimator, equiangular=equiangular, light_lobe=light_lobe,
                                distance_mix=distance_mix)
     _check_render_args(scene, key, spp, sampling=options, proposal=proposal, batch_paths=batch_paths,
                        chunk_paths=chunk_paths, devices=devices, progress=progress)
+    if not isinstance(variance, bool):
+        raise TypeError(f"render: variance must be True or False, got {variance!r}")
+    if variance and spp < 2:
+        raise ValueError(f"render: variance=True needs spp >= 2 (a variance from one sample is undefined), got {spp}")
     n_dev = jax.local_device_count() if devices is None else int(devices)
     per = layers_per_batch(scene, spp, batch_paths)
     _, n_ch = n_chunks(scene, chunk_paths)
     n_items = items_per_call(scene, spp, batch_paths, chunk_paths, n_dev)
     item = np.arange(n_items)
     H, W = scene.camera.height, scene.camera.width
-    total = jnp.zeros((H * W, 3), jnp.float32)
+    total = (jnp.zeros((H * W, 3), jnp.float32),) * (2 if variance else 1)
     for start in range(0, spp, per):
         layers = jnp.asarray(start + item // n_ch, jnp.uint32)
         chunks = jnp.asarray(item % n_ch, jnp.uint32)
         n_valid = jnp.int32(min(per, spp - start) * n_ch)
-        total = total + _render_items(scene, key, layers, chunks, n_valid, options, proposal, chunk_paths, n_dev)
+        out = _render_items(scene, key, layers, chunks, n_valid, options, proposal, chunk_paths, n_dev, variance)
+        total = tuple(a + b for a, b in zip(total, out if variance else (out,)))
         if progress is not None:
             progress(min(spp, start + per), spp)
-    return (total / spp).reshape(H, W, 3)
+    mean = (total[0] / spp).reshape(H, W, 3)
+    if not variance:
+        return mean
+    second = (total[1] / spp).reshape(H, W, 3)
+    return mean, jnp.maximum(second - mean * mean, 0.0) / (spp - 1)

@@ -48,6 +48,29 @@ def test_same_key_same_image_different_key_different_image():
     assert np.mean(a != c) > 0.5  # most pixels differ with another key
 
 
+@pytest.mark.parametrize("max_depth", [3, pytest.param(-1, marks=pytest.mark.slow)])
+def test_variance_is_the_samples_variance_over_spp(max_depth):
+    """`render(..., variance=True)` returns the image and the per-pixel sample variance (ddof 1) of its `spp`
+    samples over spp. Exact check, not statistical: sample j of every pixel is fixed by (key, j), so the renders at
+    1..spp samples give the samples themselves, `x_j = j m_j - (j - 1) m_{j-1}`. Tolerance: float32 rounding of the
+    sums (`ROUNDING_RTOL` of the largest sample squared, as the variance is a difference of second moments), and
+    the differently compiled programs may flip a path's branch (`assert_same_render_up_to_rounding`)."""
+    scene = dataclasses.replace(fog_scene(), max_depth=max_depth)
+    key, spp = jax.random.key(11), 4
+    means = [np.asarray(jf.render(scene, key, k, batch_paths=N_PIX), np.float64) for k in range(1, spp + 1)]
+    x = np.stack([means[0]] + [(j + 1) * means[j] - j * means[j - 1] for j in range(1, spp)])
+    img, var = (np.asarray(a, np.float64) for a in jf.render(scene, key, spp, batch_paths=N_PIX, variance=True))
+    assert_same_render_up_to_rounding(img, means[-1], spp=spp, label="image with variance=True")
+    expected = x.var(axis=0, ddof=1) / spp
+    tol = 1e-4 * np.max(x * x, axis=0) * (1 + spp) + 1e-12
+    bad = (np.abs(var - expected) > tol).reshape(-1, 3).any(axis=1)
+    assert np.all(np.isfinite(var)) and np.all(var >= 0)
+    assert bad.sum() <= max(1, int(0.05 * bad.size)), (bad.sum(), np.abs(var - expected).max())
+    assert var.max() > 0
+    with pytest.raises(ValueError, match="spp >= 2"):
+        jf.render(scene, key, 1, variance=True)
+
+
 def test_image_does_not_depend_on_batch_paths():
     """Sample k of every pixel uses fold_in(key, k), whatever the batching: 16 spp in one batch, or in batches of 6
     layers (the last one padded), give the same image up to float32 rounding: two compiled programs, so the
