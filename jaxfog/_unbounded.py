@@ -186,11 +186,11 @@ def _tangent_transpose(inputs, cts_out):
     """Reverse mode: path replay for the replayable leaves, forward mode (one tangent per scalar) for the rest."""
     scene, words, chunk_ids, valid, proposal, L_path, t_scene, options, chunk, n_ch = inputs
     (ct,) = cts_out
-    none = lambda tree: jax.tree.map(lambda _: None, tree)
+    none = lambda tree: jax.tree.map(lambda _: None, tree, is_leaf=lambda x: isinstance(x, ad.UndefinedPrimal))
     out = lambda g: (none(scene), none(words), none(chunk_ids), none(valid), none(proposal), none(L_path), g,
                      none(options), None, None)
     if ct is None:
-        return out(jax.tree.map(lambda _: None, t_scene))
+        return out(none(t_scene))
     if options.estimator == "reparam" and scene.medium is not None:
         raise ValueError('reverse-mode derivatives of an unbounded render (max_depth = -1) need estimator="detached" '
                          'or "proposal": with "reparam" the sampled paths move with the medium, which path replay '
@@ -243,6 +243,8 @@ def _trace(scene, words, chunk_ids, valid, proposal, *, options, chunk, n_ch):
 def _trace_jvp(primals, tangents, *, options, chunk, n_ch):
     scene, words, chunk_ids, valid, proposal = primals
     acc, L_path = _forward(scene, words, chunk_ids, valid, proposal, options=options, chunk=chunk, n_ch=n_ch)
+    if not jax.tree.leaves(tangents[0]):  # only the proposal is perturbed: it only samples (no derivative)
+        return acc, jnp.zeros_like(acc)
     (t_acc,) = eqxi.filter_primitive_bind(_tangent_p, scene, words, chunk_ids, valid, proposal, L_path,
                                           tangents[0], options, chunk, n_ch)
     return acc, t_acc
