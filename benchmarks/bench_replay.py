@@ -16,6 +16,7 @@ Every render is one compiled call (`batch_paths` = all paths), one device. Run f
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -27,8 +28,9 @@ from benchmarks.common import REPO, machine_info, memory_dict, write_json
 OUT = REPO / "docs" / "results" / "unbounded" / "bench_replay.json"
 
 
-def programs(size: int, spp: int, depths: list[int]) -> dict:
-    """name -> (jitted function of theta, depth)."""
+def programs(size: int, spp: int, depths: list[int], forward_only: bool = False) -> dict:
+    """name -> jitted function of theta (`forward_only`: the unbounded render and jacfwd only, which also run on
+    a jaxfog without the replay, for a before/after comparison of forward mode)."""
     import jax
     import jax.numpy as jnp
 
@@ -36,27 +38,31 @@ def programs(size: int, spp: int, depths: list[int]) -> dict:
 
     key = jax.random.key(0)
     out = {}
-    for depth in [*depths, -1]:
+    for depth in ([-1] if forward_only else [*depths, -1]):
         scene = load_scene("spot_fog", size, depth)
         render = lambda t, scene=scene: jf.render(with_theta(scene, t), key, spp, batch_paths=size * size * spp,
                                                   devices=1)
         mean = lambda t, render=render: jnp.mean(render(t))
         tag = "unbounded" if depth == -1 else f"depth {depth}"
-        out[f"{tag} grad"] = jax.jit(jax.grad(mean))
+        if not forward_only:
+            out[f"{tag} grad"] = jax.jit(jax.grad(mean))
         if depth == -1 or depth == 8:
             out[f"{tag} render"] = jax.jit(render)
             out[f"{tag} jacfwd"] = jax.jit(jax.jacfwd(mean))
+        if depth == -1:  # the value too (as the fit asks for it): the primal output is then used
+            both = lambda t, mean=mean: (lambda m: (m, m))(mean(t))
+            out[f"{tag} jacfwd+value"] = jax.jit(jax.jacfwd(both, has_aux=True))
     return out
 
 
-def measure(size: int, spp: int, depths: list[int], rounds: int, log=print) -> dict:
+def measure(size: int, spp: int, depths: list[int], rounds: int, forward_only: bool = False, log=print) -> dict:
     import jax
     import jax.numpy as jnp
 
     theta = jnp.asarray(theta0(load_scene("spot_fog", size, 8)))
     res = {"size": size, "spp": spp, "paths": size * size * spp, "programs": {}}
     compiled = {}
-    for name, fn in programs(size, spp, depths).items():
+    for name, fn in programs(size, spp, depths, forward_only).items():
         t0 = time.perf_counter()
         c = fn.lower(theta).compile()
         t_c = time.perf_counter() - t0
@@ -77,6 +83,8 @@ def measure(size: int, spp: int, depths: list[int], rounds: int, log=print) -> d
         p = res["programs"][name]
         p["median_s"] = float(np.median(p["run_s"]))
         p["ratio_to_unbounded_render"] = float(np.median(np.array(p["run_s"]) / base))
+    if forward_only:
+        return res
     g_rev, g_fwd = np.asarray(values["unbounded grad"]), np.asarray(values["unbounded jacfwd"])
     res["unbounded_grad_minus_jacfwd"] = {"grad": g_rev, "jacfwd": g_fwd,
                                           "max_rel": float(np.max(np.abs(g_rev - g_fwd)) / np.max(np.abs(g_fwd)))}
@@ -94,6 +102,8 @@ def format_tables(result: dict) -> str:
                          f"{p['xla']['temp_mib']:.2f} | {p['compile_s']:.1f} | {run} | {ratio} |")
     lines.append("")
     for r in result["runs"]:
+        if "unbounded_grad_minus_jacfwd" not in r:
+            continue
         d = r["unbounded_grad_minus_jacfwd"]
         lines.append(f"{r['size']}x{r['size']} {r['spp']} spp: unbounded grad {np.round(d['grad'], 6).tolist()}, "
                      f"jacfwd {np.round(d['jacfwd'], 6).tolist()}, max |diff| / max |jacfwd| = {d['max_rel']:.2e}")
@@ -106,14 +116,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--depths", default="8,32", help="fixed depths whose reverse mode is compiled (default 8,32)")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--forward-only", action="store_true", help="only the unbounded render and jax.jacfwd")
     args = ap.parse_args(argv)
     import jaxfog as jf
 
     depths = [int(d) for d in args.depths.split(",")]
-    result = {"machine": machine_info(), "jaxfog": jf.__file__, "argv": argv, "depths": depths, "runs": []}
+    result = {"machine": machine_info(), "jaxfog": jf.__file__, "argv": sys.argv[1:] if argv is None else argv,
+              "depths": depths, "runs": []}
     for cfg in args.configs.split(","):
         size, spp = (int(x) for x in cfg.split("x"))
-        result["runs"].append(measure(size, spp, depths, args.rounds))
+        result["runs"].append(measure(size, spp, depths, args.rounds, args.forward_only))
     result["machine"]["loadavg_end"] = list(__import__("os").getloadavg())
     write_json(args.out, result)
     print(format_tables(result))
