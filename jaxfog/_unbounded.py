@@ -30,13 +30,11 @@ loop's JVP and reverse mode transposes into the replay.
 
 from __future__ import annotations
 
-import functools as ft
 
 import equinox as eqx
 import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.flatten_util import ravel_pytree
 from jax.interpreters import ad
 from jaxtyping import Array
