@@ -30,6 +30,7 @@ from ._integrator import (
 )
 from ._random import hashed_uniforms, key_words, uniforms
 from ._scene import Scene, pack
+from ._unbounded import trace_items_unbounded
 from ._validate import _check_render_args
 
 DEFAULT_BATCH_PATHS = 1 << 16
@@ -102,15 +103,33 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
 def _trace_items_unbounded(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, valid: Array,
                            options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS,
                            moments: bool = False):
-    """`_trace_items` for paths of any length (`max_depth = -1`), with path regeneration.
+    """`_trace_items` for paths of any length (`max_depth = -1`), with path regeneration (`_unbounded`): the
+    image depends only on the scene, the key and spp. Differentiable in forward mode (`jax.jvp`, `jax.jacfwd`) and
+    in reverse mode (`jax.grad`: path replay, memory independent of the path length; not for "reparam"). With
+    `moments` (`render(..., variance=True)`), the plain regenerating loop `_trace_items_unbounded_moments`, which
+    also sums the squares: forward mode only."""
+    if moments:
+        return _trace_items_unbounded_moments(scene, key, layer_ids, chunk_ids, valid, options, proposal,
+                                              chunk_paths)
+    chunk, n_ch = n_chunks(scene, chunk_paths)
+    words = jax.vmap(lambda layer: jnp.stack([key_words(k) for k in jax.random.split(jax.random.fold_in(key, layer))])
+                     )(layer_ids)  # (items, 2 [pixel, path], 3)
+    return trace_items_unbounded(scene, words, chunk_ids, valid, options, proposal, chunk, n_ch)
+
+
+def _trace_items_unbounded_moments(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array,
+                                   valid: Array,
+                                   options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS,
+                                   moments: bool = True):
+    """The sums of the radiance and of its square for paths of any length, with path regeneration.
 
     The items' paths form one queue (path `q` is row `q % chunk` of item `q // chunk`); `chunk` lanes trace one
     bounce each per iteration, and a lane whose path ended (absorbed, escaped, or stopped by Russian roulette)
     scatter-adds its radiance to its pixel and takes the next path of the queue. The work is the sum of the paths'
     lengths (plus the last paths' tail), not lanes x the longest path. Path `(layer, row)` draws bounce `b`'s
     uniforms from the same hash table as `_trace_items` (row `row`, columns `b K .. b K + K - 1`), so the image
-    depends only on the scene, the key and spp. Forward-mode differentiable (`jax.jvp`, `jax.jacfwd`); a
-    `lax.while_loop` has no reverse mode."""
+    depends only on the scene, the key and spp (the same samples as `_unbounded.trace_items_unbounded`).
+    Forward-mode differentiable (`jax.jvp`, `jax.jacfwd`); a `lax.while_loop` has no reverse mode."""
     cam = scene.camera
     n_pix = cam.height * cam.width
     tracer = make_tracer(scene, pack(scene), options, proposal)
