@@ -98,21 +98,25 @@ def compare_images(a_imgs, b_imgs, label: str, log=print, blocks: int = 4) -> di
     return row
 
 
-def _cached_images(path, render_one, n: int, log=print, label: str = "") -> list:
-    """Images `0..n-1` from `render_one(k)`, kept in an `.npz` at `path` (None: no cache) so a run can be resumed
-    or extended; returns the first `n`."""
+def _cached_images(path, render_one, n: int, log=print, label: str = "") -> tuple[list, list]:
+    """Images `0..n-1` from `render_one(k)` and each one's render time (s; NaN for images from an older cache without
+    times), kept in an `.npz` at `path` (None: no cache) so a run can be resumed or extended; the first `n`."""
     import os
 
-    have = []
+    have, secs = [], []
     if path is not None and os.path.exists(path):
-        have = list(np.load(path)["images"])
-    t0 = time.perf_counter()
+        z = np.load(path)
+        have = list(z["images"])
+        secs = list(z["seconds"]) if "seconds" in z.files else [float("nan")] * len(have)
+    t_start = time.perf_counter()
     for k in range(len(have), n):
+        t0 = time.perf_counter()
         have.append(np.asarray(render_one(k), np.float32))
+        secs.append(time.perf_counter() - t0)
         if path is not None and ((k + 1) % 8 == 0 or k + 1 == n):
-            np.savez(path, images=np.stack(have))
-            log(f"  {label}: {k + 1}/{n} images, {time.perf_counter() - t0:.0f} s")
-    return have[:n]
+            np.savez(path, images=np.stack(have), seconds=np.asarray(secs))
+            log(f"  {label}: {k + 1}/{n} images, {time.perf_counter() - t_start:.0f} s")
+    return have[:n], secs[:n]
 
 
 def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp: int, fixed_depth: int = 32,
@@ -149,19 +153,17 @@ def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp:
         over = [f"integrator.max_depth={depth}"]
         if "jaxfog" in sides:
             sc = load(name, size, over).scene
-            t0 = time.perf_counter()
-            jx[depth] = _cached_images(path(f"jaxfog_d{depth}_spp{sj}"), lambda k: jf.render(
+            jx[depth], secs = _cached_images(path(f"jaxfog_d{depth}_spp{sj}"), lambda k: jf.render(
                 sc, jax.random.fold_in(jax.random.key(kj), k), sj), nj, log, f"jaxfog depth {depth}")
-            times[f"jaxfog_{depth}_s"] = time.perf_counter() - t0
+            times[f"jaxfog_{depth}"] = secs
         if "mitsuba" in sides:
             msc = mi.load_dict(jf.to_mitsuba(load(name, size, over)))
-            t0 = time.perf_counter()
-            mx[depth] = _cached_images(path(f"mitsuba_d{depth}_spp{sm}"), lambda k: np.asarray(
+            mx[depth], secs = _cached_images(path(f"mitsuba_d{depth}_spp{sm}"), lambda k: np.asarray(
                 mi.render(msc, spp=sm, seed=seed_m + k))[..., :3], nm, log, f"Mitsuba depth {depth}")
-            times[f"mitsuba_{depth}_s"] = time.perf_counter() - t0
+            times[f"mitsuba_{depth}"] = secs
     res = {"size": size, "jaxfog_images": n_images, "jaxfog_spp": spp, "mitsuba_images": mi_images,
            "mitsuba_spp": mi_spp, "fixed_depth": fixed_depth, "fixed_images": fixed_images, "fixed_spp": fixed_spp,
-           "seconds": times, "mitsuba_version": mi.__version__, "mitsuba_variant": "scalar_rgb"}
+           "seconds_per_image": times, "mitsuba_version": mi.__version__, "mitsuba_variant": "scalar_rgb"}
     if jx and mx:
         res["unbounded_vs_mitsuba"] = compare_images(jx[-1], mx[-1], "jaxfog -1 vs Mitsuba -1 (rr 5)", log)
         res["fixed_vs_mitsuba"] = compare_images(jx[fixed_depth], mx[fixed_depth],
