@@ -1,14 +1,20 @@
 """Paths of any length: cost of fixed depth 8 against unbounded depth (Russian roulette + path regeneration), and
 the dense fog rendered without bias against Mitsuba 3's unbounded `volpath`.
 
-    python -m benchmarks.bench_depth [--size 128] [--out docs/results/unbounded]
+    python -m benchmarks.bench_depth [--parts timing dense] [--size 128] [--cache DIR] [--out docs/results/unbounded]
 
-1. ms/spp of spot_fog_thin, spot_fog and spot_fog_dense at `max_depth` 8 and -1, interleaved in one process
-   (A B A B ..., after compilation; median of the rounds and the median of the per-round ratios).
-2. spot_fog_dense (sigma_t = 3) at `max_depth` -1 in jaxfog and in Mitsuba (`scalar_rgb` variant, `rr_depth` 5,
-   `max_depth` -1), independent images on both sides: the image mean and 4 x 4 block means with their standard
-   errors, z = difference / combined SE; and the bias of jaxfog at fixed depths 8 and 32 against the same
-   unbounded estimate. Needs the `compare` extra (skipped without Mitsuba).
+1. `timing`: ms/spp of spot_fog_thin, spot_fog and spot_fog_dense at `max_depth` 8 and -1, interleaved in one
+   process (A B A B ..., after compilation; median of the rounds and the median of the per-round ratios).
+2. `dense`: spot_fog_dense (sigma_t = 3) at a small size (default 16 x 16) with many independent images a side:
+   jaxfog and Mitsuba (`scalar_rgb` variant) both unbiased (`max_depth` -1, Russian roulette from `rr_depth` 5) and
+   both at a fixed depth (default 32) without Russian roulette, and jaxfog's fixed depth against its unbiased
+   render. For each pair: the image mean and the 4 x 4 region means with SEs from the spread over the independent
+   images, z per region, the relative difference of the image means with its SE, a percentile bootstrap interval of
+   the ratio (no normality assumed: the image means are heavy-tailed in this scene) and each side's tail summary
+   (largest image's share, median / mean, the two halves' means). `--cache DIR` keeps the images (resumable and
+   extendable; `--sides` lets two processes render the two sides). Needs the `compare` extra (skipped without it).
+
+The JSON keeps the part that did not run from an earlier run (`runs` says when and how each part ran).
 """
 
 from __future__ import annotations
@@ -155,12 +161,12 @@ def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp:
             sc = load(name, size, over).scene
             jx[depth], secs = _cached_images(path(f"jaxfog_d{depth}_spp{sj}"), lambda k: jf.render(
                 sc, jax.random.fold_in(jax.random.key(kj), k), sj), nj, log, f"jaxfog depth {depth}")
-            times[f"jaxfog_{depth}"] = secs
+            times[f"jaxfog_{depth}"] = None if np.all(np.isnan(secs)) else secs
         if "mitsuba" in sides:
             msc = mi.load_dict(jf.to_mitsuba(load(name, size, over)))
             mx[depth], secs = _cached_images(path(f"mitsuba_d{depth}_spp{sm}"), lambda k: np.asarray(
                 mi.render(msc, spp=sm, seed=seed_m + k))[..., :3], nm, log, f"Mitsuba depth {depth}")
-            times[f"mitsuba_{depth}"] = secs
+            times[f"mitsuba_{depth}"] = None if np.all(np.isnan(secs)) else secs
     res = {"size": size, "jaxfog_images": n_images, "jaxfog_spp": spp, "mitsuba_images": mi_images,
            "mitsuba_spp": mi_spp, "fixed_depth": fixed_depth, "fixed_images": fixed_images, "fixed_spp": fixed_spp,
            "seconds_per_image": times, "mitsuba_version": mi.__version__, "mitsuba_variant": "scalar_rgb"}

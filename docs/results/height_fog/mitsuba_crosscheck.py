@@ -171,7 +171,7 @@ def main() -> int:
         mj, sej = mean_se(rj)
         coarse, fine = args.grids
         disc_meas = mres[coarse][0].mean(0) - mres[fine][0].mean(0)
-        disc_meas_se = np.sqrt(mres[coarse][0].var(0, ddof=1) + mres[fine][0].var(0, ddof=1)) / np.sqrt(args.mitsuba_keys)
+        disc_meas_se = np.sqrt((mres[coarse][0].var(0, ddof=1) + mres[fine][0].var(0, ddof=1)) / args.mitsuba_keys)
         H = float(med["height_scale"])
         pred = {ny: (grid_factor(ny, H) - 1.0) * ds for ny in args.grids}
         pred_diff = pred[coarse] - pred[fine]
