@@ -125,6 +125,23 @@ def _forward(scene, words, chunk_ids, valid, proposal, *, options, chunk, n_ch):
     return _run(scene, words, chunk_ids, valid, options, proposal, chunk, n_ch, step, zeros)
 
 
+def moments(scene, words, chunk_ids, valid, proposal, *, options, chunk, n_ch):
+    """`(acc, acc_sq)`: the items' radiance and its square summed per row, `(n_ch * chunk, 3)` each (for
+    `render(..., variance=True)`): the same paths as `trace_items_unbounded`, by the plain loop, so forward mode
+    only (a `lax.while_loop` has no reverse mode)."""
+    n_rows = n_ch * chunk
+
+    def step(tracer, extra, state, row, qid, b, U):
+        new = _lanes(tracer, state, b, U)
+        ended = state.alive & ~new.alive
+        L_end = jnp.where(ended[:, None], new.L, 0.0)
+        slot = jnp.where(ended, row, n_rows)
+        return tuple(a.at[slot].add(x, mode="drop") for a, x in zip(extra, (L_end, L_end * L_end))), new
+
+    zeros = (jnp.zeros((n_rows, 3), jnp.float32),) * 2
+    return _run(scene, words, chunk_ids, valid, options, proposal, chunk, n_ch, step, zeros)
+
+
 # ---------------------------------------------------------------------------------------------- the replay
 def replayable(scene: Scene):
     """A pytree like `scene` (bool leaves): True where reverse mode replays the paths (the medium's fields and the
