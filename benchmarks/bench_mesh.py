@@ -64,7 +64,7 @@ def rays_per_second(counts, n_rays, repeats, leaf_sizes, seed=0) -> list[dict]:
     import jax.numpy as jnp
 
     import jaxfog as jf
-    from jaxfog._mesh import LEAF_SIZE, brute_force_nearest, mesh_nearest
+    from jaxfog._mesh import brute_force_nearest, mesh_nearest
     from make_mesh_fog import torus_mesh
 
     rng = np.random.default_rng(seed)
