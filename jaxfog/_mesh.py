@@ -402,28 +402,24 @@ def _area(lo, hi):
 
 def _sah_split(lo_t, hi_t, cen, idx):
     """Split the triangles `idx` (more than 4) in two by the surface area heuristic, sweeping every split of the
-    centroids sorted along each axis (pbrt-v4 and Embree bin the large nodes; the exact sweep is vectorized here).
-    The cost of a side is its area times its number of 4-triangle blocks (Embree's block SAH: a leaf step tests
-    4 triangles at the price of one), so the split favours full leaves."""
+    centroids sorted along each axis (pbrt-v4 and Embree bin the large nodes; the exact sweep is vectorized here,
+    the three axes at once). The cost of a side is its area times its number of 4-triangle blocks (Embree's block
+    SAH: a leaf step tests 4 triangles at the price of one), so the split favours full leaves. Returns both sides as
+    `(idx, lo, hi)` (float64 bounds)."""
     n = len(idx)
-    best, best_split = np.inf, None
+    srt = idx[np.argsort(cen[idx], axis=0, kind="stable").T]  # (3 axes, n)
+    lo, hi = lo_t[srt], hi_t[srt]  # (3, n, 3)
+    l_lo, l_hi = np.minimum.accumulate(lo, 1), np.maximum.accumulate(hi, 1)
+    r_lo = np.minimum.accumulate(lo[:, ::-1], 1)[:, ::-1]
+    r_hi = np.maximum.accumulate(hi[:, ::-1], 1)[:, ::-1]
     k = np.arange(1, n)
-    blocks_l, blocks_r = (k + 3) // 4, (n - k + 3) // 4
-    for axis in range(3):
-        c = cen[idx, axis]
-        if c.max() == c.min():
-            continue
-        srt = idx[np.argsort(c, kind="stable")]
-        lo, hi = lo_t[srt], hi_t[srt]
-        l_lo, l_hi = np.minimum.accumulate(lo, 0)[:-1], np.maximum.accumulate(hi, 0)[:-1]
-        r_lo, r_hi = np.minimum.accumulate(lo[::-1], 0)[::-1][1:], np.maximum.accumulate(hi[::-1], 0)[::-1][1:]
-        cost = _area(l_lo, l_hi) * blocks_l + _area(r_lo, r_hi) * blocks_r
-        j = int(np.argmin(cost))
-        if cost[j] < best:
-            best, best_split = cost[j], (srt[:j + 1], srt[j + 1:])
-    if best_split is None:  # all centroids equal: any split
-        return idx[: n // 2], idx[n // 2:]
-    return best_split
+    cost = _area(l_lo[:, :-1], l_hi[:, :-1]) * ((k + 3) // 4) + _area(r_lo[:, 1:], r_hi[:, 1:]) * ((n - k + 3) // 4)
+    c = cen[srt[:, [0, -1]], np.arange(3)[:, None]]
+    cost[c[:, 0] == c[:, 1]] = np.inf  # no spread along this axis
+    a, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    if not np.isfinite(cost[a, j]):  # all centroids equal: any split
+        a, j = 0, n // 2 - 1
+    return ((srt[a, :j + 1], l_lo[a, j], l_hi[a, j]), (srt[a, j + 1:], r_lo[a, j + 1], r_hi[a, j + 1]))
 
 
 def build_bvh(tris) -> BVH:
@@ -436,51 +432,49 @@ def build_bvh(tris) -> BVH:
     lo_t, hi_t = tris.min(axis=1), tris.max(axis=1)
     cen = tris.mean(axis=1)
 
-    def bounds(idx):
-        lo = np.nextafter(lo_t[idx].min(axis=0).astype(np.float32), np.float32(-np.inf))
-        hi = np.nextafter(hi_t[idx].max(axis=0).astype(np.float32), np.float32(np.inf))
-        return lo, hi
+    def box32(lo, hi):
+        return (np.nextafter(lo.astype(np.float32), np.float32(-np.inf)),
+                np.nextafter(hi.astype(np.float32), np.float32(np.inf)))
 
-    leaves, nodes = [], []  # leaves: index arrays; nodes: per child (reference ('L' | 'N', id), its box)
-
-    # explicit stack: (idx, parent node, child position, depth)
+    leaves, nodes = [], []  # leaves: index arrays; nodes: per child [reference ('L' | 'N', id), float32 box]
     depth = 0
     root = None
-    stack = [(np.arange(F), None, 0, 0)]
+    stack = [((np.arange(F), lo_t.min(0), hi_t.max(0)), None, 0, 0)]  # ((idx, lo, hi), parent, position, depth)
     while stack:
-        idx, parent, pos, dep = stack.pop()
-        if len(idx) <= WIDTH:
+        item, parent, pos, dep = stack.pop()
+        if len(item[0]) <= WIDTH:
             ref = ("L", len(leaves))
-            leaves.append(idx)
+            leaves.append(item[0])
         else:
-            kids = [idx]
+            kids = [item]
             while len(kids) < WIDTH:
-                big = [i for i, kk in enumerate(kids) if len(kk) > WIDTH]
+                big = [i for i, kk in enumerate(kids) if len(kk[0]) > WIDTH]
                 if not big:
                     break
-                i = max(big, key=lambda i: _area(*bounds(kids[i])))
-                a, b = _sah_split(lo_t, hi_t, cen, kids[i])
-                kids[i:i + 1] = [a, b]
+                i = max(big, key=lambda i: _area(kids[i][1], kids[i][2]))
+                kids[i:i + 1] = list(_sah_split(lo_t, hi_t, cen, kids[i][0]))
             ref = ("N", len(nodes))
-            nodes.append([None] * len(kids))
+            nodes.append([[None, box32(kk[1], kk[2])] for kk in kids])
             depth = max(depth, dep + 1)
             for j in range(len(kids) - 1, -1, -1):  # pushed in reverse: the first child's leaves come first
                 stack.append((kids[j], ref[1], j, dep + 1))
-            for j, kk in enumerate(kids):
-                nodes[-1][j] = (None, bounds(kk))
         if parent is None:
             root = ref
         else:
-            nodes[parent][pos] = (ref, nodes[parent][pos][1])
+            nodes[parent][pos][0] = ref
     n_leaves = len(leaves)
     if n_leaves + len(nodes) >= 2**24:
         raise MeshError(f"{F} triangles: too many BVH rows for float32 references (at most about 50 million)")
     rows = np.zeros((n_leaves + len(nodes), ROW), np.float32)
     order = np.full(n_leaves * WIDTH, -1, np.int64)
-    for r, idx in enumerate(leaves):
-        order[r * WIDTH:r * WIDTH + len(idx)] = idx
-        t = tris[idx].astype(np.float32)  # (k, 3, 3)
-        rows[r].reshape(3, 3, WIDTH)[:, :, :len(idx)] = t.transpose(1, 2, 0)
+    counts = np.array([len(idx) for idx in leaves])
+    flat = np.concatenate(leaves)
+    lane = np.arange(len(flat)) - np.repeat(np.cumsum(counts) - counts, counts)
+    leaf = np.repeat(np.arange(n_leaves), counts)
+    order[leaf * WIDTH + lane] = flat
+    lv = rows[:n_leaves].reshape(n_leaves, 3, 3, WIDTH)
+    lv[leaf, :, :, lane] = tris[flat].astype(np.float32)
+    rows[:n_leaves] = lv.reshape(n_leaves, ROW)
     for q, kids in enumerate(nodes):
         row = rows[n_leaves + q]
         row[24:28] = -1.0
@@ -721,12 +715,16 @@ def _walk_one(rows, o, d, t_max, *, root, S, n_leaves, any_hit):
 _MIN_WIDTH = 16
 """The narrowest stage of the batched traversal (`_walk_batch`)."""
 
+_SHRINK = 4
+"""Each stage of the batched traversal has this many times fewer lanes than the one before."""
+
 
 def _stage_widths(n: int) -> list[int]:
-    """Lane counts of the batched traversal's stages: `n`, then a quarter of the previous, down to `_MIN_WIDTH`."""
+    """Lane counts of the batched traversal's stages: `n`, then `1 / _SHRINK` of the previous, down to
+    `_MIN_WIDTH`."""
     widths = [n]
     while widths[-1] > _MIN_WIDTH:
-        widths.append(max(_MIN_WIDTH, -(-widths[-1] // 4)))
+        widths.append(max(_MIN_WIDTH, -(-widths[-1] // _SHRINK)))
     return widths
 
 
