@@ -7,14 +7,21 @@
 - Front faces are counter-clockwise seen from the front (as in Mitsuba and PLY): the geometric normal of the triangle
   `(v0, v1, v2)` is `normalize(cross(v1 - v0, v2 - v0))`. Normals are flat (per face) unless `smooth=True` and the
   file has vertex normals: then the shading normal is the barycentric interpolation of the vertex normals.
-- The BVH (`build_bvh`) is binary, split at the object median along the longest axis of the centroids' bounds, with
-  full leaves of `leaf_size` triangles (the last one padded with degenerate triangles that never hit): its depth is
-  `ceil(log2(n_leaves))`, so the traversal's stack size is known when the mesh is built. Each node stores its two
-  children's boxes, so one traversal step tests both boxes (nearer child first) or one leaf's triangles.
+- The BVH (`build_bvh`) is 4-wide with leaves of at most 4 triangles, built on the host by the surface area
+  heuristic (an exact sweep over sorted centroids; a side's cost counts 4-triangle blocks, as in Embree) and
+  stored as one table of 36-float rows: a leaf row holds 4 triangles, a node row its 4 children's boxes and rows.
+  One traversal step reads one row (one gather) and either tests 4 triangles or 4 boxes (one vector op each),
+  goes to the nearest child hit and pushes the others (farther first); the stack needs at most 3 entries per
+  level, known when the mesh is built. Shadow rays stop at the first hit.
+- Traversal under `vmap` (every render traces a chunk of rays at once) is batched with lane compaction
+  (`jax.custom_batching.custom_vmap`): a vectorized while loop costs as many steps as its slowest lane needs, so
+  the batch runs at full width until a quarter of its lanes are still walking, then those continue in a batch a
+  quarter the size, and so on (`_walk_batch`). Each lane takes the same steps as the per-ray loop (`_walk_one`,
+  used without `vmap`), so the hits are the same.
 - Ray/triangle intersection is watertight (Woop, Benthin, Wald 2013, "Watertight Ray/Triangle Intersection", JCGT
   2(1)): vertices are sheared into a ray-aligned frame and tested with 2-D edge functions that two triangles sharing
   an edge compute with the same operands, so a ray through a shared edge or vertex hits at least one of them.
-- Geometry is fixed (not differentiated): the traversal runs under `stop_gradient` in a `lax.while_loop`, returns the
+- Geometry is fixed (not differentiated): the traversal runs under `stop_gradient` in `lax.while_loop`s, returns the
   hit triangle's slot, and the differentiable quantities (distance along the ray from the hit triangle's plane, its
   normal) are recomputed from that triangle alone, so medium, light and BSDF parameters differentiate in forward and
   reverse mode as in analytic scenes.
@@ -688,21 +695,23 @@ def _walk_step(rows, n_leaves: int, any_hit: bool, w: _Walk) -> _Walk:
     t_best = jnp.where(better, tt[k], w.t_best)
     slot = jnp.where(better, w.cur * WIDTH + k.astype(jnp.int32), w.slot)
     # next row: descend to the nearest child hit, pushing the m others; or pop. The stack is written and read with
-    # masks over its slots (elementwise; a per-lane scatter is slow under vmap): slot sp + q gets child m - q.
+    # masks over its slots (elementwise; a per-lane scatter is slow under vmap): slots sp, sp + 1, sp + 2 get
+    # children m, m - 1, m - 2 (farthest first); the writes past sp + m - 1, and all writes when popping, land
+    # above the new top, where nothing live is kept, so they need no mask.
     descend = ~is_leaf & (n_hit > 0)
-    m = jnp.where(descend, n_hit - 1, 0)
+    m = n_hit - 1
     slots = jnp.arange(w.stack.shape[0], dtype=jnp.int32)
     q = slots - w.sp
-    val = jnp.where(m - q == 3, e[3][1], jnp.where(m - q == 2, e[2][1], e[1][1]))
-    stack = jnp.where((q >= 0) & (q < m), val, w.stack)
+    v0 = jnp.where(m == 3, e[3][1], jnp.where(m == 2, e[2][1], e[1][1]))
+    v1 = jnp.where(m == 3, e[2][1], e[1][1])
+    stack = jnp.where(q == 0, v0, jnp.where(q == 1, v1, jnp.where(q == 2, e[1][1], w.stack)))
     top = jnp.max(jnp.where(slots == w.sp - 1, w.stack, -1))
     nxt = jnp.where(descend, e[0][1], top)
     sp = jnp.where(descend, w.sp + m, jnp.maximum(w.sp - 1, 0))
     if any_hit:
         nxt = jnp.where(slot >= 0, -1, nxt)
-    nxt = jnp.where(active, nxt, -1)
-    keep = lambda new, old: jnp.where(active, new, old)  # noqa: E731
-    return w._replace(cur=nxt, stack=keep(stack, w.stack), sp=keep(sp, w.sp), t_best=t_best, slot=slot)
+    # a done ray's stack and stack pointer are dead: only its hit is kept
+    return w._replace(cur=jnp.where(active, nxt, -1), stack=stack, sp=sp, t_best=t_best, slot=slot)
 
 
 def _walk_one(rows, o, d, t_max, *, root, S, n_leaves, any_hit):
@@ -713,18 +722,19 @@ def _walk_one(rows, o, d, t_max, *, root, S, n_leaves, any_hit):
 
 
 _MIN_WIDTH = 16
-"""The narrowest stage of the batched traversal (`_walk_batch`)."""
+"""The narrowest stage of the batched traversal (`_walk_batch`): each stage is one more loop to compile (seconds on a
+CPU), and below this few lanes are left to gain from."""
 
 _SHRINK = 4
 """Each stage of the batched traversal has this many times fewer lanes than the one before."""
 
 
 def _stage_widths(n: int) -> list[int]:
-    """Lane counts of the batched traversal's stages: `n`, then `1 / _SHRINK` of the previous, down to
-    `_MIN_WIDTH`."""
+    """Lane counts of the batched traversal's stages: `n`, then `1 / _SHRINK` of the previous (rounded up) while that
+    is at least `_MIN_WIDTH`: 1024 rays run in stages of 1024, 256, 64 and 16 lanes, 48 rays in one."""
     widths = [n]
-    while widths[-1] > _MIN_WIDTH:
-        widths.append(max(_MIN_WIDTH, -(-widths[-1] // _SHRINK)))
+    while -(-widths[-1] // _SHRINK) >= _MIN_WIDTH:
+        widths.append(-(-widths[-1] // _SHRINK))
     return widths
 
 
