@@ -107,7 +107,7 @@ def rays_per_second(counts, n_rays, repeats, seed=0) -> list[dict]:
         mesh = jf.Mesh.from_arrays(v, f, jf.Diffuse(0.5))
         build = time.perf_counter() - t0
         nbytes = sum(x.nbytes for x in jax.tree.leaves(mesh) if hasattr(x, "nbytes"))
-        kw = dict(root=mesh.root, S=mesh.stack_size, n_leaves=mesh.n_leaves)
+        kw = dict(root=mesh.root, S=mesh.stack_size, box=mesh.box, n_leaves=mesh.n_leaves)
         nearest = jax.jit(jax.vmap(lambda a, b: _mesh.mesh_nearest(mesh, a, b)))
         shadow = jax.jit(jax.vmap(lambda a, b, c: _mesh.mesh_occluded(mesh, a, b, c)))
         # the same walk vectorized per ray, without lane compaction (`_walk_one` under a plain vmap)

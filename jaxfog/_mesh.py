@@ -393,13 +393,15 @@ class BVH(NamedTuple):
     `r`: vertex `i`, coordinate `c` at `rows[r, (3 i + c) 4 + k]`, unused lanes zero), the others internal nodes
     (child `k`'s box: `lo[a] = rows[r, 4 a + k]`, `hi[a] = rows[r, 12 + 4 a + k]`; its row `rows[r, 24 + k]` as a
     float, -1 for no child); `order` (4 n_leaves,): the input triangle of each leaf slot (-1: unused); `root`: the
-    root's row; `depth`: internal nodes on the longest root-to-leaf path."""
+    root's row; `depth`: internal nodes on the longest root-to-leaf path; `box`: the float32 bounds of all
+    triangles, rounded outward (lo then hi, 6 Python floats)."""
 
     rows: np.ndarray
     order: np.ndarray
     n_leaves: int
     root: int
     depth: int
+    box: tuple
 
 
 def _area(lo, hi):
@@ -490,7 +492,8 @@ def build_bvh(tris) -> BVH:
             row[12:24].reshape(3, WIDTH)[:, k] = hi
             row[24 + k] = ref[1] if ref[0] == "L" else n_leaves + ref[1]
     root_row = root[1] if root[0] == "L" else n_leaves + root[1]
-    return BVH(rows, order, n_leaves, int(root_row), int(depth))
+    lo, hi = box32(lo_t.min(0), hi_t.max(0))
+    return BVH(rows, order, n_leaves, int(root_row), int(depth), tuple(float(x) for x in np.concatenate([lo, hi])))
 
 
 # -------------------------------------------------------------------------------------------------------- the Module
@@ -507,7 +510,8 @@ class Mesh(eqx.Module):
     (leaves, 3 vertices, 3 coordinates, 4)) with world-space vertices; each triangle's vertices are sorted by their
     index in the file, `wind` (leaves, 4) is +1 where that kept the file's winding and -1 where it reversed it;
     `vn`: vertex normals in the `leaves` layout, or None (flat normals); `face` (slots,): the file's face index of
-    each slot (-1: unused); static `root` (the root's row), `stack_size`, `n_leaves`, `n_faces`.
+    each slot (-1: unused); static `root` (the root's row), `box` (the whole mesh's float32 box, rounded outward:
+    lo then hi, 6 floats), `stack_size`, `n_leaves`, `n_faces`.
     """
 
     rows: Float[Array, "R 36"]
@@ -516,6 +520,7 @@ class Mesh(eqx.Module):
     face: Int[Array, "S"]
     bsdf: AbstractBSDF
     root: int = eqx.field(static=True)
+    box: tuple = eqx.field(static=True)
     stack_size: int = eqx.field(static=True)
     n_leaves: int = eqx.field(static=True)
     n_faces: int = eqx.field(static=True)
@@ -552,7 +557,7 @@ class Mesh(eqx.Module):
         vn = per_leaf(data.normals[faces]) if smooth else None
         w = np.where(slot_ok, wind[safe], 1.0).astype(np.float32).reshape(-1, WIDTH)
         return cls(rows=jnp.asarray(bvh.rows), vn=vn, wind=jnp.asarray(w),
-                   face=jnp.asarray(bvh.order.astype(np.int32)), bsdf=bsdf, root=bvh.root,
+                   face=jnp.asarray(bvh.order.astype(np.int32)), bsdf=bsdf, root=bvh.root, box=bvh.box,
                    stack_size=max(1, (WIDTH - 1) * bvh.depth), n_leaves=bvh.n_leaves,
                    n_faces=int(data.faces.shape[0]))
 
@@ -649,10 +654,20 @@ class _Walk(NamedTuple):
     inv_d: Float[Array, "3"]
 
 
-def _walk_start(root: int, S: int, o, d, t_max) -> _Walk:
+def _walk_start(root: int, S: int, box: tuple, o, d, t_max) -> _Walk:
+    """A ray's walk from the root; a ray that misses the whole mesh's box `(lo, hi)` before `t_max` is done at once
+    (no step: under `vmap` the batch's first, full-width stage then runs only if enough rays remain). The box
+    contains every child box, and the rounding of the slab test is monotonic, so no ray that hits a child box
+    misses it."""
     tiny = jnp.float32(1e-30)
     inv_d = 1.0 / jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d)
-    return _Walk(jnp.int32(root), jnp.full(S, -1, jnp.int32), jnp.int32(0), jnp.asarray(t_max, jnp.float32),
+    t_max = jnp.asarray(t_max, jnp.float32)
+    lo, hi = np.asarray(box[:3], np.float32), np.asarray(box[3:], np.float32)
+    t0, t1 = (lo - o) * inv_d, (hi - o) * inv_d
+    tn = jnp.max(jnp.minimum(t0, t1))
+    tf = jnp.min(jnp.maximum(t0, t1)) * _BOX_SLACK
+    hit = (tn <= tf) & (tf > T_MIN) & (tn < t_max)
+    return _Walk(jnp.where(hit, jnp.int32(root), -1), jnp.full(S, -1, jnp.int32), jnp.int32(0), t_max,
                  jnp.int32(-1), ray_frame(o, d), inv_d)
 
 
@@ -714,10 +729,10 @@ def _walk_step(rows, n_leaves: int, any_hit: bool, w: _Walk) -> _Walk:
     return w._replace(cur=jnp.where(active, nxt, -1), stack=stack, sp=sp, t_best=t_best, slot=slot)
 
 
-def _walk_one(rows, o, d, t_max, *, root, S, n_leaves, any_hit):
+def _walk_one(rows, o, d, t_max, *, root, S, box, n_leaves, any_hit):
     """One ray's traversal: `_walk_step` in a `lax.while_loop` until the stack is empty."""
     w = jax.lax.while_loop(lambda w: w.cur >= 0, functools.partial(_walk_step, rows, n_leaves, any_hit),
-                           _walk_start(root, S, o, d, t_max))
+                           _walk_start(root, S, box, o, d, t_max))
     return w.t_best, w.slot
 
 
@@ -738,7 +753,7 @@ def _stage_widths(n: int) -> list[int]:
     return widths
 
 
-def _walk_batch(rows, O, D, TM, *, root, S, n_leaves, any_hit):
+def _walk_batch(rows, O, D, TM, *, root, S, box, n_leaves, any_hit):
     """Traversal of a batch of rays `O`, `D` (n, 3), `TM` (n,) with lane compaction: a vectorized while loop runs
     all lanes until at most a quarter of them are still walking; those are gathered into a batch of a quarter the
     size, and so on down to `_MIN_WIDTH` lanes, which run until all are done. A vectorized while loop costs as many
@@ -746,7 +761,7 @@ def _walk_batch(rows, O, D, TM, *, root, S, n_leaves, any_hit):
     narrow. The results equal the per-ray walk's (`_walk_one`): the same steps, lane by lane."""
     n = O.shape[0]
     step = jax.vmap(functools.partial(_walk_step, rows, n_leaves, any_hit))
-    w = jax.vmap(functools.partial(_walk_start, root, S))(O, D, TM)
+    w = jax.vmap(functools.partial(_walk_start, root, S, box))(O, D, TM)
     lane = jnp.arange(n, dtype=jnp.int32)
     t_out, slot_out = w.t_best, w.slot
     widths = _stage_widths(n)
@@ -763,10 +778,10 @@ def _walk_batch(rows, O, D, TM, *, root, S, n_leaves, any_hit):
 
 
 @functools.lru_cache(maxsize=None)
-def _walker(root: int, S: int, n_leaves: int, any_hit: bool):
+def _walker(root: int, S: int, box: tuple, n_leaves: int, any_hit: bool):
     """The traversal `(rows, o, d, t_max) -> (t, slot)` of one ray, with a batching rule (`custom_vmap`): under
     `vmap` over rays it runs `_walk_batch` (lane compaction) instead of a vectorized per-ray loop."""
-    kw = dict(root=root, S=S, n_leaves=n_leaves, any_hit=any_hit)
+    kw = dict(root=root, S=S, box=box, n_leaves=n_leaves, any_hit=any_hit)
     one = functools.partial(_walk_one, **kw)
     walk = jax.custom_batching.custom_vmap(one)
 
@@ -790,7 +805,7 @@ def _traverse(mesh: Mesh, o, d, t_max, any_hit: bool):
     o, d, t_max = jax.lax.stop_gradient((jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32),
                                          jnp.asarray(t_max, jnp.float32)))
     rows = jax.lax.stop_gradient(mesh.rows)
-    return _walker(mesh.root, mesh.stack_size, mesh.n_leaves, any_hit)(rows, o, d, t_max)
+    return _walker(mesh.root, mesh.stack_size, mesh.box, mesh.n_leaves, any_hit)(rows, o, d, t_max)
 
 
 def mesh_nearest(mesh: Mesh, o, d, t_max=jnp.inf):
