@@ -2,9 +2,11 @@
 grey model on a chromatic target reports failure (as tests/test_fit.py's failures are reported).
 
 Marked `slow` (`pytest -m slow tests/test_fit_models.py`): two fits, ~100 s of CPU on 2 cores (366 s with the cores
-shared, load 8). Measured (2026-12-01): the chromatic fit (0.3087 +- 0.0024, 0.5067 +- 0.0017, 0.8059 +- 0.0024),
-2.4-3.9 SE above the truth (0.3, 0.5, 0.8), residual 3.4x the noise; the grey model (sigma_t 0.500, g 0.441),
-residual 96.9x (docs/results/fit_models.md)."""
+shared, load 8). Measured (2026-12-01, the fit loop with per-pixel weights and one forward-mode pass per averaging
+round; 72 s at load ~3): the chromatic fit (0.2996 +- 0.0012, 0.4997 +- 0.0008, 0.8003 +- 0.0008), within 0.4 SE of
+the truth (0.3, 0.5, 0.8), residual 1.17x the noise; the grey model (sigma_t 0.491, g 0.423) refused at 195.7x (per
+channel r 195.7, g 1.9, b 142.3). The loop before: (0.3087, 0.5067, 0.8059) +- (0.0024, 0.0017, 0.0024), 2.4-3.9 SE
+above the truth, residual 3.4x; grey 96.9x (docs/results/fit_models.md)."""
 
 from __future__ import annotations
 
