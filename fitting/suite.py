@@ -268,7 +268,7 @@ def report(paths, outdir: Path) -> int:
     payload = {"merged_from": [str(p) for p in paths], "results": [], "agreement": []}
     for p in paths:
         d = json.loads(Path(p).read_text())
-        payload["results"] += d.get("results", [])
+        payload["results"] += [r for r in d.get("results", []) if r["exit"] >= 0]  # < 0: killed by a signal
         payload["agreement"] += d.get("agreement", []) or []
         payload.setdefault("commands", []).append(d.get("command"))
     payload["coverage"] = coverage(payload["results"])
