@@ -154,8 +154,7 @@ def agreement(manifest: dict, cases: list[dict], spp: int = 256, seed: int = 7) 
 
     from .core import block_noise
 
-    sys.path.insert(0, str(REPO / "data_synthetic" / "foreign"))
-    from make_foreign import truth_scene
+    truth_scene = _make_foreign().truth_scene
 
     out = []
     for case in cases:
@@ -179,6 +178,16 @@ def agreement(manifest: dict, cases: list[dict], spp: int = 256, seed: int = 7) 
                   + f" (se {np.max(out[-1]['rel_se']):.2%}), z " + " ".join(f"{x:+.1f}" for x in out[-1]["z"]),
                   flush=True)
     return out
+
+
+def _make_foreign():
+    """`data_synthetic/foreign/make_foreign.py` as a module (it is a script, not part of a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_foreign", REPO / "data_synthetic" / "foreign" / "make_foreign.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def fmt(x, spec=".4f"):

@@ -36,6 +36,12 @@ def test_manifest_lists_both_kinds_of_case():
     assert files == {t["file"] for t in MANIFEST["targets"]}, "targets section and cases disagree"
 
 
+def test_manifest_is_the_generators():
+    """manifest.json's cases are those of `make_foreign.CASES` (the script that rendered the targets)."""
+    gen = suite._make_foreign()
+    assert CASES == [json.loads(json.dumps(gen.manifest_case(c))) for c in gen.CASES]
+
+
 @pytest.mark.parametrize("case", CASES, ids=IDS)
 def test_manifest_case_consistent(case):
     assert case["expect"] in ("pass", "fail")
@@ -72,7 +78,8 @@ def test_judge_applies_both_tolerances():
     assert suite.judge(case, 0, res, 1.0)["ok"]
     res_far = dict(res, params={"sigma_t": 0.515, "g": 0.61})  # 3% off, 3.75 se: both violated
     assert not suite.judge(case, 0, res_far, 1.0)["ok"]
-    res_loose = dict(res, params={"sigma_t": 0.515, "g": 0.61}, uncertainty={"sigma_t": {"se": 0.01}, "g": {"se": 0.006}})
+    res_loose = dict(res, params={"sigma_t": 0.515, "g": 0.61},
+                     uncertainty={"sigma_t": {"se": 0.01}, "g": {"se": 0.006}})
     assert not suite.judge(case, 0, res_loose, 1.0)["ok"]  # within 2 se but beyond 2%
     assert not suite.judge(case, 1, res, 1.0)["ok"]  # a failed fit never passes
     fail = dict(case, expect="fail", determined=[])
