@@ -114,7 +114,7 @@ def judge(case: dict, rc: int, res: dict, wall: float, log_tail=()) -> dict:
     if case["expect"] == "pass":
         problems = []
         if rc != 0:
-            problems.append(f"fit exited {rc}" + (f": {'; '.join(messages)}" if messages else ""))
+            problems.append(f"fit exited {rc}" + (f": {'; '.join(_short(m) for m in messages)}" if messages else ""))
         for r in rows:
             if r["determined"]:
                 if "error" not in r:
@@ -133,6 +133,12 @@ def judge(case: dict, rc: int, res: dict, wall: float, log_tail=()) -> dict:
             "expect": case["expect"], "exit": rc, "success": success, "ok": ok, "problems": problems,
             "messages": messages, "chi2": res.get("chi2"), "rounds": res.get("rounds"),
             "fit_wall_s": res.get("wall_s"), "wall_s": wall, "rows": rows, "log_tail": list(log_tail)}
+
+
+def _short(message: str, n: int = 160) -> str:
+    """A fit message on one line, at most `n` characters (a solver's message can run to a page)."""
+    one = " ".join(message.split())
+    return one if len(one) <= n else one[: n - 3] + "..."
 
 
 def coverage(results: list[dict]) -> dict:
