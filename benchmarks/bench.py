@@ -112,6 +112,7 @@ class Config:
     mitsuba_scene: str = "spot_fog"
     mitsuba_spp: int = 64  # per Mitsuba render (the equal-error target is its 64-spp RMSE)
     mitsuba_chunks: int = 16
+    mitsuba_variant: str = "llvm_ad_rgb"  # scalar_rgb where Dr.Jit's LLVM backend aborts (slower: say so)
     equal_error_draws: int = 32  # independent jaxfog images at the spp that matches Mitsuba's error
     seed: int = 0
     parts: tuple = ("strategies", "depth", "mitsuba")
@@ -509,7 +510,7 @@ def depth_study(cfg: Config, log=print) -> dict:
 
 # ---------------------------------------------------------------------------------------------------- mitsuba
 def run_mitsuba(name: str, size: int, spp: int, chunks: int, workdir: Path, python: str = sys.executable,
-                env: dict | None = None, timeout: float = 1800, seed0: int = 0) -> dict:
+                env: dict | None = None, timeout: float = 1800, seed0: int = 0, variant: str | None = None) -> dict:
     """Render the scene in Mitsuba 3 in a subprocess (`benchmarks.bench_mitsuba`): the images (Mitsuba seeds `seed0`,
     `seed0 + 1`, ...), times, memory; or `{"skipped": reason}` when Mitsuba (or its LLVM backend) is not there."""
     workdir.mkdir(parents=True, exist_ok=True)
@@ -518,7 +519,7 @@ def run_mitsuba(name: str, size: int, spp: int, chunks: int, workdir: Path, pyth
         out.unlink()
     cmd = [python, "-m", "benchmarks.bench_mitsuba", str(scene_path(name)), "--set", f"camera.width={size}",
            "--set", f"camera.height={size}", "--spp", str(spp), "--chunks", str(chunks), "--seed", str(seed0), "--out", str(out),
-           "--quiet"]
+           "--quiet"] + ([] if variant is None else ["--variant", variant])
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env(env), timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -547,6 +548,7 @@ def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir
     wall times: the measured ratios of `measure_equal_error` (the HEADLINE)."""
     t_jax_before = jax_time_per_spp() if jax_time_per_spp is not None else None
     # the run's --seed also draws Mitsuba's images (seeds from 1000 x seed), so repeated runs are independent
+    kw.setdefault("variant", cfg.mitsuba_variant)
     mr = run_mitsuba(name, cfg.size, cfg.mitsuba_spp, cfg.mitsuba_chunks, workdir, seed0=1000 * cfg.seed, **kw)
     if "skipped" in mr:
         return {"scene": name, "skipped": mr["skipped"]}
@@ -911,6 +913,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth-spp", type=int, metavar="N", help="spp of the depth study (default 16)")
     p.add_argument("--mitsuba-chunks", type=int, metavar="N", help="Mitsuba renders of --mitsuba-spp each (default 16)")
     p.add_argument("--mitsuba-spp", type=int, metavar="N", help="spp of one Mitsuba render (default 64)")
+    p.add_argument("--mitsuba-variant", metavar="V", help="Mitsuba variant (default llvm_ad_rgb; scalar_rgb where "
+                   "the LLVM backend aborts)")
     p.add_argument("--equal-error-draws", type=int, metavar="N",
                    help="independent jaxfog images measured at Mitsuba's 64-spp error (default 32, at most 999)")
     p.add_argument("--max-bias", type=float, nargs="+", metavar="E", default=[0.01, 0.03, 0.1],
@@ -926,6 +930,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
              "ref_spp": args.ref_spp, "strategies": args.strategies, "depth_scenes": args.depth_scenes,
              "depths": args.depths, "depth_size": args.depth_size,
              "depth_spp": args.depth_spp, "mitsuba_chunks": args.mitsuba_chunks, "mitsuba_spp": args.mitsuba_spp,
+             "mitsuba_variant": args.mitsuba_variant,
              "equal_error_draws": args.equal_error_draws}
     for k, v in pairs.items():
         if v is not None:

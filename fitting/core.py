@@ -140,11 +140,11 @@ class FitConfig:
     value_spp_factor: int = 32
     max_gain: float = 4.0
     max_se: float = 0.1
-    average_jacobians: int = 5
+    average_jacobians: int = 20
     max_step_se: float = 15.0
     approach_spp_factor: int = 4
     precision: float = 0.01
-    noise_weights: bool = False
+    noise_weights: bool = True
 
 
 @dataclass
@@ -192,14 +192,49 @@ class Problem:
         self.targets = [jnp.asarray(v.target) for v in views]
         self.on_eval = on_eval
 
-    def images(self, y, key, ref, estimator="proposal", spp=None):
+    def images(self, y, key, ref, estimator="proposal", spp=None, variance=False):
+        """One render per view at the unconstrained parameters `y` (a list of `(h, w, 3)` images; with `variance`,
+        of `(image, per-pixel variance of its estimate)` pairs)."""
         vals = from_unconstrained(self.names, y)
         out = []
         for i, v in enumerate(self.views):
             scene = apply(v.scene, vals)
             out.append(jaxfog.render(scene, jax.random.fold_in(key, i), spp or self.cfg.spp,
-                                     estimator=estimator, proposal=ref))
+                                     estimator=estimator, proposal=ref, variance=variance))
         return out
+
+    def value(self, y, key, ref, factor):
+        """The residual's value at `y` from a render at `factor` x spp with `key`, and the per-element variance of
+        the residual of ONE render at spp there (the render's own per-pixel sample variance, times `factor`), both
+        in the scaled units of `residuals`: `(e, u)` as float64 vectors."""
+        outs = self.images(y, key, ref, spp=self.cfg.spp * factor, variance=True)
+        e = np.concatenate([((np.asarray(img, np.float64) - np.asarray(t, np.float64)) / s).ravel()
+                            for (img, _), t, s in zip(outs, self.targets, self.scales)]) / math.sqrt(self.n)
+        u = np.concatenate([(np.asarray(var, np.float64) * factor / (s * s)).ravel()
+                            for (_, var), s in zip(outs, self.scales)]) / self.n
+        return e, u
+
+    def value_and_jacobian(self, y, key, ref, factor):
+        """`value` and the scaled residual's Jacobian from ONE forward-mode pass at `factor` x spp with `key`:
+        `(e, u, J)` (float64). A forward-mode pass costs ~1.2x a plain render for two parameters (measured, 8 x 8 px,
+        2,048 spp: 1.92-2.16 s against 1.56-1.77 s CPU), so the Jacobian comes almost free with the value render,
+        from its `factor` x spp samples instead of spp."""
+        def f(yy):
+            outs = self.images(yy, key, ref, spp=self.cfg.spp * factor, variance=True)
+            flat = jnp.concatenate([(img / s).ravel() for (img, _), s in zip(outs, self.scales)])
+            return flat, (jax.lax.stop_gradient(flat), [jax.lax.stop_gradient(var) for _, var in outs])
+        J, (flat, var) = jax.jacfwd(f, has_aux=True)(y)
+        t = np.concatenate([(np.asarray(t, np.float64) / s).ravel() for t, s in zip(self.targets, self.scales)])
+        e = (np.asarray(flat, np.float64) - t) / math.sqrt(self.n)
+        u = np.concatenate([(np.asarray(v, np.float64) * factor / (s * s)).ravel()
+                            for v, s in zip(var, self.scales)]) / self.n
+        return e, u, np.asarray(J, np.float64) / math.sqrt(self.n)
+
+    def jacobian(self, y, key, ref):
+        """The scaled residual's Jacobian at `y` (`(n, k)`, float64) from the "proposal" render with `key`."""
+        J = jax.jacfwd(lambda yy: jnp.concatenate([(img / s).ravel() for img, s in
+                                                   zip(self.images(yy, key, ref), self.scales)]))(y)
+        return np.asarray(J, np.float64) / math.sqrt(self.n)
 
     def offsets(self, y_ref, key_jac, key_val, ref, factor=None):
         """Per-view constant `c = I(y_ref; key_val) - I(y_ref; key_jac)` that turns the residual of one solve into
@@ -209,9 +244,12 @@ class Problem:
         equations read `J(key_jac)^T (I(key_val) - T) = 0`, whose expectation over the two independent keys is
         `E[J]^T (E[I] - T)`: the noise of the render no longer biases the estimate (with one key, the fit minimises
         `|E[I] - T|^2 + Var[I]` and `Var[I]` depends strongly on g near a spot light)."""
-        a = self.images(y_ref, key_val, ref, spp=self.cfg.spp * (factor or self.cfg.value_spp_factor))
+        factor = factor or self.cfg.value_spp_factor
+        a = self.images(y_ref, key_val, ref, spp=self.cfg.spp * factor, variance=True)
         b = self.images(y_ref, key_jac, ref)
-        return [jax.lax.stop_gradient(x - z) for x, z in zip(a, b)]
+        self.last_u = np.concatenate([(np.asarray(var, np.float64) * factor / (s * s)).ravel()
+                                      for (_, var), s in zip(a, self.scales)]) / self.n
+        return [jax.lax.stop_gradient(x - z) for (x, _), z in zip(a, b)]
 
     def cross_loss(self, y, args):
         """Unbiased loss for noisy renders: mean over pixels of `(A - T)(B - T)` (relative), with A and B rendered
@@ -277,12 +315,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     sizes = [v.target.size for v in views]
     K_avg = cfg.value_spp_factor
     K_app = max(1, min(cfg.approach_spp_factor, K_avg))
-    state["noise"] = []  # per round: (e3 - e)^2 / (1 + 1/K), the per-element render variance at `spp`
-
-    def record_noise(e, e3, K):
-        d2 = (np.asarray(e3, np.float64) - np.asarray(e, np.float64)) ** 2 / (1.0 + 1.0 / K)
-        if np.all(np.isfinite(d2)):
-            state["noise"].append(d2)
+    state["noise"] = []  # per round: the per-element variance of one render at `spp` (`Problem.value`, `.offsets`)
 
     def noise_model():
         """Per-element variances of the (scaled) residual: the target's and one render's at `spp`. The render's, u,
@@ -290,7 +323,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         pixels in the sandwich below, so one draw per pixel and round is enough). The target's from its header's
         spp (the same per-sample variance as the fit's renders, `1 / (spp_T f^2)` of it: a pooled pixel holds
         f^2 spp_T samples) or, without one, from the target itself (`block_noise`)."""
-        u = np.mean(state["noise"][-max(cfg.average_jacobians, 1) * 2:], axis=0) if state["noise"] else None
+        u = np.mean(state["noise"][-NOISE_ROUNDS:], axis=0) if state["noise"] else None
         s2_T, at = [], 0
         for v, sc, nv in zip(views, problem.scales, sizes):
             if v.target_spp and u is not None:
@@ -367,18 +400,13 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         estimate of `E[J]^T E[J]` (averaged over the last 5 rounds); the step is scaled by `G = A^-1 J1^T J1` (eigenvalues clipped to
         [1, max_gain]; no scaling where A is not positive definite). Also keeps `A` for the uncertainty, the
         Jacobian pair for the averaged rounds and the pair of residuals at `y0` for the noise model."""
-        on_eval, problem.on_eval = problem.on_eval, None
-        try:
-            J1, e = with_residual(args)(y0)
-            J3, e3 = with_residual((key3, args[1], None))(y0)
-            J1, J3 = np.asarray(J1, np.float64), np.asarray(J3, np.float64)
-        finally:
-            problem.on_eval = on_eval
+        J1 = problem.jacobian(y0, args[0], args[1])
+        J3 = problem.jacobian(y0, key3, args[1])
         if not (np.all(np.isfinite(J1)) and np.all(np.isfinite(J3))):
             log("  (step not rescaled: non-finite Jacobian)")
             return y_lm
-        record_noise(e, e3, factor)
-        state.setdefault("J_pairs", []).append((J1, J3))
+        state["noise"].append(problem.last_u)
+        state.setdefault("J_list", []).extend([(J1, 1), (J3, 1)])
         M = J1.T @ J1
         state.setdefault("A_list", []).append(0.5 * (J1.T @ J3 + J3.T @ J1))
         A = np.mean(state["A_list"][-5:], axis=0)
@@ -405,39 +433,61 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         one-key Jacobian `J1` enters an LM round's step multiplied by the distance to the solution, and the step gain
         (`unshrink`) multiplies it again along the weakly determined direction: the rounds wander along the ridge of
         correlated parameters (measured on denser fog: round-to-round spread 3-4x what the residual's noise explains).
-        Here the step is `-A^-1 Jbar^T W e`, with `e` the residual at `y0` (its value from the independent `key_val`,
-        `Problem.offsets`), `Jbar_a`, `Jbar_b` the means of the last `average_jacobians` rounds' Jacobians of two
-        independent keys each (`J1`, `J3` in `unshrink`), `Jbar` their mean, `A = sym(Jbar_a^T W Jbar_b)` (an
-        estimate of `E[J]^T W E[J]` without the noise's `Var[J]`) and W the noise weights (`wvec`, squared). The
-        fixed point is the LM rounds' one for W = 1: `E[J]^T W (E[I] - T) = 0`. Returns None where `A` is not
-        positive definite (the caller falls back to LM)."""
+        Here the step is `-A^-1 Jbar^T W e`, with `e` the residual at `y0` from this round's key `key_val` at K_avg x
+        spp, `Jbar_a`, `Jbar_b` the spp-weighted means of the earlier rounds' Jacobians (the last
+        `average_jacobians`, alternately assigned to the two halves, each from its own key), `Jbar` their mean,
+        `A = sym(Jbar_a^T W Jbar_b)` (an estimate of `E[J]^T W E[J]` without the noise's `Var[J]`) and W the noise
+        weights (`wvec`, squared). The fixed point: `E[J]^T W (E[I] - T) = 0`. Returns None where `A` is not
+        positive definite or fewer than two earlier Jacobians exist (the caller falls back to LM)."""
         nonlocal iterations
         state["round"] = round_id
         key, key_val = jax.random.split(jax.random.fold_in(base_key, round_id))
         ref = _reference(views, from_unconstrained(names, y0))
-        args = (key, ref, problem.offsets(y0, key, key_val, ref, K_avg))
-        on_eval, problem.on_eval = problem.on_eval, None
-        try:
-            # the residual comes with its Jacobian (has_aux): one render, not two
-            J1, e = with_residual(args)(y0)
-            J3, e3 = with_residual((jax.random.fold_in(key_val, 1), ref, None))(y0)
-            J1, e, J3 = np.asarray(J1, np.float64), np.asarray(e, np.float64), np.asarray(J3, np.float64)
-        finally:
-            problem.on_eval = on_eval
-        if not (np.all(np.isfinite(e)) and np.all(np.isfinite(J1)) and np.all(np.isfinite(J3))):
+        # one forward-mode pass at K_avg x spp: the residual's value, its per-pixel variance (the noise model's, for
+        # the later rounds' weights) and a Jacobian. The step takes the value with the Jacobians of EARLIER rounds
+        # only (independent keys: a Jacobian and a residual from the same samples are correlated, which would bias
+        # the fixed point), split into two halves of independent keys for the two-key normal matrix. This round's
+        # Jacobian joins the list for the next rounds. (Before: two extra Jacobians at spp per round; their noise,
+        # 32x the variance of this one's, multiplied the residual's noise in `Jbar^T W e` and made the rounds
+        # wander 5-10 of their standard errors: measured on the main job, the same rounds' steps with an exact
+        # Jacobian landed 2-3x closer to the truth.)
+        e, u_now, J_now = problem.value_and_jacobian(y0, key_val, ref, K_avg)
+        args = (key, ref, None)
+        if not (np.all(np.isfinite(e)) and np.all(np.isfinite(J_now))):
             return None
-        record_noise(e, e3, K_avg)
-        pairs = state.setdefault("J_pairs", [])
-        pairs.append((J1, J3))
-        recent = pairs[-cfg.average_jacobians:]
-        Ja = np.mean([p[0] for p in recent], axis=0) * wvec[:, None]
-        Jb = np.mean([p[1] for p in recent], axis=0) * wvec[:, None]
+        state["noise"].append(u_now)
+        js = state.setdefault("J_list", [])  # (Jacobian, its spp factor): the approach's at 1, these at K_avg
+        recent = js[-cfg.average_jacobians:]
+        good = [x for x in recent if x[1] == K_avg]  # this phase's only: the approach's at spp are 32x noisier
+        state["warm_up"] = not good
+        if not good:
+            # the first averaging round renders its pass and stays put: the approach's two Jacobians at spp are too
+            # noisy for a step of the averaging's precision (measured: the main job's first averaged step with them
+            # went from (0.503, 0.594) to (0.465, 0.521)), and a one-key step with this round's own Jacobian is
+            # biased, as the Jacobian shares the residual's samples (measured: (0.503, 0.594) to (0.490, 0.570))
+            js.append((J_now, K_avg))
+            state["warm_up"] = True
+            state["step_len"] = 0.0
+            return y0, args
+        elif len(good) == 1:
+            # one earlier Jacobian of this precision: it alone multiplies the residual (independent of it); this
+            # round's own enters only the normal matrix's second factor (measured: with the approach's noisy pair in
+            # the two halves instead, the second averaged step of the main job was 14 of its standard errors long)
+            Jg, Ja, Jb = good[0][0], good[0][0], J_now
+        else:
+            def mean(half):  # weighted by spp: a Jacobian's variance is inversely proportional to its samples
+                return sum(J * f for J, f in half) / sum(f for _, f in half)
+
+            Ja, Jb = mean(good[0::2]), mean(good[1::2])
+            Jg = 0.5 * (Ja + Jb)
+        Jg, Ja, Jb = Jg * wvec[:, None], Ja * wvec[:, None], Jb * wvec[:, None]
         ew = e * wvec
         A = 0.5 * (Ja.T @ Jb + Jb.T @ Ja)
-        step = solve_spd(A, -0.5 * (Ja + Jb).T @ ew)
+        step = solve_spd(A, -Jg.T @ ew)
         if step is None:
             log("  (averaged Jacobians: normal matrix not positive definite; an LM round instead)")
-            pairs.pop()
+            js.append((J_now, K_avg))
+            state["warm_up"] = False
             return None
         state["normal"], state["pair"] = A, (Ja, Jb)
         # the step's noise covariance: the target's and this round's value render's noise through the sandwich
@@ -446,23 +496,43 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         u, _ = noise_model()
         C_step = 2.0 * sandwich(Ja, Jb, A, u / K_avg * wvec ** 2)
         length = _mahalanobis(step, C_step)
-        if length > cfg.max_step_se and not state.get("rejected"):
+        if length > cfg.max_step_se and not state.get("rejected") and not state["warm_up"]:
             log(f"  (averaged step of {length:.0f} standard errors rejected: an outlier render; the round stays put)")
             step = np.zeros_like(step)
             state["rejected"] = True
-            pairs.pop()  # the outlier may be in this round's Jacobians: keep them out of the next rounds' averages
-            state["noise"].pop()
+            state["noise"].pop()  # the outlier render: its variance and Jacobian stay out of the next rounds
+            J_now = None
         else:
-            if length > cfg.max_step_se:  # twice in a row: far from the solution, not an outlier; go, but shortened
-                log(f"  (averaged step of {length:.0f} standard errors shortened to {cfg.max_step_se:g})")
-                step = step * (cfg.max_step_se / length)
+            if length > cfg.max_step_se and not state["warm_up"]:
+                # twice in a row, with two independent keys: far from the solution, not an outlier; go
+                log(f"  (averaged step of {length:.0f} standard errors taken: the second in a row)")
             state["rejected"] = False
         state["step_len"] = length
+        if J_now is not None:
+            js.append((J_now, K_avg))
         iterations += 1
         y_new = jnp.asarray(np.asarray(y0, np.float64) + step, dtype=jnp.asarray(y0).dtype)
-        if on_eval is not None:  # the progress line: the residual at the round's starting point
-            on_eval(y0, float(e @ e))
+        if problem.on_eval is not None:  # the progress line: the residual at the round's starting point
+            problem.on_eval(y0, float(e @ e))
         return y_new, args
+
+    def gls_weights():
+        """Per-element weights of the averaging rounds' residual: `1 / sqrt(v)`, with `v` the element's variance
+        (the target's plus one value render's at K_avg x spp, `noise_model`), so the step is generalised least
+        squares, the minimum-variance weighting (measured on the main job's views at the truth: 2.8x and 3.6x less
+        variance in sigma_t and g than equal weights; docs/fitting.md). The variances come from earlier rounds'
+        renders, so the weights are independent of the residual they weigh (weights from the same render would
+        favour pixels whose noise happened to be low and bias the estimate). A variance is floored at
+        `VAR_FLOOR` of the median (a pixel whose samples showed no spread must not take all the weight; a
+        heavy-tailed pixel's variance is underestimated when no firefly was drawn). Normalised to mean square 1."""
+        u, s2_T = noise_model()
+        tot = s2_T + u / K_avg
+        pos = tot[np.isfinite(tot) & (tot > 0)]
+        if pos.size == 0:
+            return ones
+        tot = np.where(np.isfinite(tot), np.maximum(tot, VAR_FLOOR * float(np.median(pos))), np.inf)
+        w = 1.0 / np.sqrt(tot)
+        return w / math.sqrt(np.mean(w ** 2))
 
     def covariances(wvec, K):
         """(C_T, C_R): the covariance (unconstrained coordinates) of one round's estimate from the target's noise and
@@ -500,6 +570,8 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         y_prev = np.asarray(y, np.float64)
         stepped = None
         if phase == "average" and use_avg:
+            if cfg.noise_weights:  # from the earlier rounds' renders only: independent of this round's residual
+                wvec = gls_weights()
             stepped = averaged_step(y, r, wvec)
         if stepped is None:
             y, args = solve(y, r, K_app if phase == "approach" else K_avg)
@@ -527,22 +599,16 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
             # arrived: the step is within its own noise (chi^2 with k degrees of freedom, 95%)
             if (r >= 1 and length ** 2 <= chi2_stop) or r + 1 >= cfg.burn_in:
                 phase = "average"
-                if not cfg.noise_weights:
-                    continue
-                if not use_avg:
+                # the averaged Jacobians only from rounds at the current estimate: the approach's earlier rounds
+                # were far from it (main job: round 0 at (0.25, 0.3) for a solution at (0.5, 0.6)), and their
+                # Jacobians in the average made the Gauss-Newton steps over- and undershoot (measured: averaging
+                # rounds 5-9 standard errors apart, against 2-3 with only the last approach round's pair kept)
+                state["J_list"] = state.get("J_list", [])[-2:]
+                if not use_avg and cfg.noise_weights:
                     averaging.append(np.asarray(y, np.float64))
-                # noise weights per view: 1 / sqrt(mean variance of its residual, target + a value render)
-                u, s2_T = noise_model()
-                tot = s2_T + u / K_avg
-                wvec, at = np.ones(problem.n), 0
-                for nv in sizes:
-                    m = float(np.mean(tot[at:at + nv]))
-                    wvec[at:at + nv] = 1.0 / math.sqrt(m) if m > 0 and np.isfinite(m) else 1.0
-                    at += nv
-                wvec = wvec / math.sqrt(np.mean(wvec ** 2))  # only the views' relative weights matter
             continue
-        if stepped is not None and state.get("rejected"):
-            continue  # the round stayed put: not a new estimate
+        if stepped is not None and (state.get("rejected") or state.get("warm_up")):
+            continue  # the round stayed put, or its estimate shares its Jacobian's samples: not an averaged estimate
         averaging.append(np.asarray(y, np.float64))
         m = len(averaging)
         if m < cfg.repeats + 1 or C_T is None:
@@ -594,31 +660,48 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     #      estimate's uncertainty
     k1, k2 = jax.random.split(jax.random.fold_in(base_key, 7777))
     ref = _reference(views, from_unconstrained(names, y_hat))
-    spp_check = 2 * cfg.spp
+    spp_check = cfg.spp  # the programs of the rounds' Jacobian and LM-offset renders, not two new ones
     # The residual may also hold the estimate's own uncertainty (cov_hat, in the unconstrained coordinates): its
     # share per block is J_b cov_hat J_b^T, with J_b the Jacobian of the (pooled) render at the estimate.
     with np.errstate(invalid="ignore", divide="ignore"):
         corr0 = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
     cov_hat = np.where(np.isfinite(cov_y), cov_y, 0.0)  # unknown uncertainty: the check uses the noise alone
-    render_a = lambda yy: (lambda im: (im, im))(problem.images(yy, k1, ref, estimator="detached", spp=spp_check))
+    render_a = lambda yy: (lambda im: (im, im))(problem.images(yy, k1, ref))
     Ja, a = jax.jacfwd(render_a, has_aux=True)(y_hat)
-    b = problem.images(y_hat, k2, ref, estimator="detached", spp=spp_check)
-    chi2s = []
+    b = problem.images(y_hat, k2, ref)
+    # Robust to heavy-tailed (firefly) noise: ratios of medians of squared pixel residuals. For a model that explains
+    # the target, (mean of the two renders - target) has variance var/2 + var_target, and (ia - ib)/2 has var/2;
+    # var_target = var x spp_check / (target_spp f^2) from the header's spp (a pooled target pixel holds f^2 x
+    # target_spp samples; the fit pixel's per-sample variance also holds the sub-pixel variation, so this errs
+    # toward more target noise), else the target's own block estimate. One ratio per view (its three channels
+    # pooled) and one per channel (the views pooled): a grey model on a chromatic target fits the channels' mean
+    # and leaves a residual of opposite sign in red and blue, which a per-channel ratio shows.
+    num_px, den_px = [], []
     for v, ia, ib, ja in zip(views, a, b, Ja):
-        # Robust to heavy-tailed (firefly) noise: ratio of medians of squared block residuals. For a model that
-        # explains the target, (mean of the two renders - target) has variance var/2 + var_target, and
-        # (ia - ib)/2 has var/2, with var_target = var * spp_check / target_spp.
-        blk = _block(v)
-        ia, ib, t = pool(np.asarray(ia), blk), pool(np.asarray(ib), blk), pool(v.target, blk)
-        factor = 1.0 + (2.0 * spp_check / v.target_spp if v.target_spp else 0.0)
-        jb = np.stack([pool(np.asarray(ja[..., i]), blk) for i in range(len(names))], axis=-1)
+        ia, ib, t = np.asarray(ia, np.float64), np.asarray(ib, np.float64), np.asarray(v.target, np.float64)
+        jb = np.stack([np.asarray(ja[..., i], np.float64) for i in range(len(names))], axis=-1)
         par = np.einsum("...i,ij,...j->...", jb, cov_hat, jb)
-        num = np.median((0.5 * (ia + ib) - t) ** 2)
-        den = np.median(((ia - ib) / 2.0) ** 2) * factor + np.median(par)
-        if not v.target_spp and v.target_var is not None:  # the target's noise from the target itself
-            den += float(np.median(pool(np.asarray(v.target_var), blk))) / (blk * blk)
-        chi2s.append(float(num / max(den, 1e-30)))
-    chi2 = float(max(chi2s))
+        noise = ((ia - ib) / 2.0) ** 2
+        if v.target_spp:
+            noise = noise * (1.0 + 2.0 * spp_check / (v.target_spp * v.downscale ** 2))
+        elif v.target_var is not None:
+            noise = noise + np.asarray(v.target_var, np.float64)
+        num_px.append((0.5 * (ia + ib) - t) ** 2)
+        den_px.append((noise, par))
+
+    def ratio(nums, dens):
+        num = np.median(np.concatenate([x.ravel() for x in nums]))
+        den = (np.median(np.concatenate([d[0].ravel() for d in dens]))
+               + np.median(np.concatenate([d[1].ravel() for d in dens])))
+        return float(num / max(den, 1e-30))
+
+    chi2s = [ratio([n], [d]) for n, d in zip(num_px, den_px)]
+    chi2_channels = [ratio([n[..., c] for n in num_px], [(d[0][..., c], d[1][..., c]) for d in den_px])
+                     for c in range(3)]
+    log("model check (residual / expected noise): per view " + ", ".join(f"{v.name} {c:.2f}" for v, c in
+                                                                        zip(views, chi2s))
+        + "; per channel " + ", ".join(f"{ch} {c:.2f}" for ch, c in zip("rgb", chi2_channels)))
+    chi2 = float(max(chi2s + chi2_channels))
     timing.append({"round": "check", "phase": "model check", "wall_s": time.perf_counter() - t_start,
                    "cpu_s": time.process_time() - c_start})
     explained = chi2 <= cfg.chi2_max
@@ -626,6 +709,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         messages.append(
             f"the model does not explain the target(s): residual is {chi2:.1f}x the expected noise "
             f"(limit {cfg.chi2_max}); per view: " + ", ".join(f"{v.name} {c:.1f}" for v, c in zip(views, chi2s))
+            + "; per channel: " + ", ".join(f"{ch} {c:.1f}" for ch, c in zip("rgb", chi2_channels))
         )
     at_bound = []
     for i, n in enumerate(names):
@@ -664,6 +748,16 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         information=information,
         timing=timing,
     )
+
+
+NOISE_ROUNDS = 4
+"""The noise model's per-element render variance is the mean of the last this many rounds' estimates (each a
+render's own per-pixel sample variance at K x spp samples): the rounds sit near one point once the approach has
+ended, and more samples of a heavy-tailed pixel make its variance estimate less often too low."""
+
+VAR_FLOOR = 0.1
+"""Floor of an element's variance in the weights (`gls_weights`), relative to the median element: at most ~3x the
+median weight."""
 
 
 def _mahalanobis(d, C) -> float:
@@ -723,12 +817,3 @@ def _rounds_cov(Y, C_R):
         f = np.sqrt((1.0 + np.clip(rho, 0.0, 0.9)) / (1.0 - np.clip(rho, 0.0, 0.9)))
         C = C * np.outer(f, f)
     return C
-
-
-def _block(v: View) -> int:
-    """Block size for the noise check: 2 px where the image allows (pooling keeps a model mismatch, averages noise)."""
-    H, W = v.target.shape[:2]
-    for b in (2, 1):
-        if H % b == 0 and W % b == 0:
-            return b
-    return 1

@@ -84,7 +84,10 @@ def check_target_brightness(view, scene, spp: int = 4, seed: int = 12345) -> Non
     if not t > 0.0:
         raise FitError(f"{view.name}: target is black (every pixel 0): nothing to fit; a target rendered with the "
                        f"light off, or the wrong file?")
-    img = jaxfog.check_finite(np.asarray(jaxfog.render(scene, jax.random.key(seed), spp)),
+    # the fit's own render (the "proposal" estimator at the fit's spp): its compiled program is the fit's, not one more
+    kw = ({"estimator": "proposal", "proposal": jax.lax.stop_gradient(scene.medium)} if scene.medium is not None
+          else {})
+    img = jaxfog.check_finite(np.asarray(jaxfog.render(scene, jax.random.key(seed), spp, **kw)),
                               f"{view.name}: render of the initial guess")
     m = float(np.mean(img))
     if m > 0.0 and not (1.0 / PLAUSIBLE_BRIGHTNESS <= t / m <= PLAUSIBLE_BRIGHTNESS):
@@ -239,7 +242,7 @@ def _run(args) -> int:
     from .params import apply
 
     for v in views:  # before the fit: a black target, or one of another brightness, cannot be fitted
-        check_target_brightness(v, apply(v.scene, init))
+        check_target_brightness(v, apply(v.scene, init), spp=args.spp)
     extra = {} if args.value_spp_factor is None else {"value_spp_factor": args.value_spp_factor}
     if args.steps == "lm":
         extra["average_jacobians"] = 0

@@ -48,6 +48,12 @@ MODEL_GROUPS = {
                  "two-term HG fog: forward lobe 0.8 (weight 0.7), backward lobe -0.4", ("twoterm_fit_backlit", "twoterm_fit_side")),
 }
 """Targets of the chromatic and phase-function fits (issue 14), seeds after the height-fog ones."""
+MESH_GROUPS = {
+    # issue 18: a triangle mesh (a bumpy torus of 21,504 triangles, BVH) in the benchmark medium
+    "mesh_mid": ({"sigma_t": 0.5, "g": 0.6, "albedo": 0.9}, "the benchmark medium around a triangle mesh",
+                 ("mesh_fog",)),
+}
+"""Targets of the mesh-scene fit (issue 18, docs/results/mesh.md), seeds after the phase-function ones."""
 
 
 def main(argv=None) -> int:
@@ -67,6 +73,7 @@ def main(argv=None) -> int:
     groups = [(name, value, VIEWS) for name, value in TRUTHS.items()]
     groups += [(name, value, HEIGHT_VIEWS) for name, value in HEIGHT_TRUTHS.items()]
     groups += [(name, (truth, desc), views) for name, (truth, desc, views) in MODEL_GROUPS.items()]
+    groups += [(name, (truth, desc), views) for name, (truth, desc, views) in MESH_GROUPS.items()]
     for tname, (truth, desc), views in groups:
         for view in views:
             seed += 1

@@ -7,14 +7,21 @@
 - Front faces are counter-clockwise seen from the front (as in Mitsuba and PLY): the geometric normal of the triangle
   `(v0, v1, v2)` is `normalize(cross(v1 - v0, v2 - v0))`. Normals are flat (per face) unless `smooth=True` and the
   file has vertex normals: then the shading normal is the barycentric interpolation of the vertex normals.
-- The BVH (`build_bvh`) is binary, split at the object median along the longest axis of the centroids' bounds, with
-  full leaves of `leaf_size` triangles (the last one padded with degenerate triangles that never hit): its depth is
-  `ceil(log2(n_leaves))`, so the traversal's stack size is known when the mesh is built. Each node stores its two
-  children's boxes, so one traversal step tests both boxes (nearer child first) or one leaf's triangles.
+- The BVH (`build_bvh`) is 4-wide with leaves of at most 4 triangles, built on the host by the surface area
+  heuristic (an exact sweep over sorted centroids; a side's cost counts 4-triangle blocks, as in Embree) and
+  stored as one table of 36-float rows: a leaf row holds 4 triangles, a node row its 4 children's boxes and rows.
+  One traversal step reads one row (one gather) and either tests 4 triangles or 4 boxes (one vector op each),
+  goes to the nearest child hit and pushes the others (farther first); the stack needs at most 3 entries per
+  level, known when the mesh is built. Shadow rays stop at the first hit.
+- Traversal under `vmap` (every render traces a chunk of rays at once) is batched with lane compaction
+  (`jax.custom_batching.custom_vmap`): a vectorized while loop costs as many steps as its slowest lane needs, so
+  the batch runs at full width until a quarter of its lanes are still walking, then those continue in a batch a
+  quarter the size, and so on (`_walk_batch`). Each lane takes the same steps as the per-ray loop (`_walk_one`,
+  used without `vmap`), so the hits are the same.
 - Ray/triangle intersection is watertight (Woop, Benthin, Wald 2013, "Watertight Ray/Triangle Intersection", JCGT
   2(1)): vertices are sheared into a ray-aligned frame and tested with 2-D edge functions that two triangles sharing
   an edge compute with the same operands, so a ray through a shared edge or vertex hits at least one of them.
-- Geometry is fixed (not differentiated): the traversal runs under `stop_gradient` in a `lax.while_loop`, returns the
+- Geometry is fixed (not differentiated): the traversal runs under `stop_gradient` in `lax.while_loop`s, returns the
   hit triangle's slot, and the differentiable quantities (distance along the ray from the hit triangle's plane, its
   normal) are recomputed from that triangle alone, so medium, light and BSDF parameters differentiate in forward and
   reverse mode as in analytic scenes.
@@ -40,9 +47,6 @@ __all__ = ["Mesh", "MeshError", "MeshData", "read_mesh", "write_ply", "build_bvh
 
 T_MIN = 1e-4
 """Smallest accepted hit distance (scene units), as for the analytic shapes (`_shapes.T_MIN`)."""
-
-LEAF_SIZE = 4
-"""Triangles per BVH leaf (default). Measured in `benchmarks/bench_mesh.py` (4 was faster than 8 on a 2-core CPU)."""
 
 _BOX_SLACK = 1.0 + 4.0 * 2.0**-24 * 3
 """Factor on a box's exit distance: covers the float32 rounding of the slab test (pbrt-v4's `1 + 2 gamma(3)`, with
@@ -371,79 +375,125 @@ def apply_transform(mesh: MeshData, m: np.ndarray) -> MeshData:
 
 
 # -------------------------------------------------------------------------------------------------------- the BVH
-class BVH(NamedTuple):
-    """Host BVH arrays. `order` (F,): the input face of each leaf slot (-1 for padding); `child_lo`, `child_hi`
-    (N, 2, 3) float32: the boxes of each node's two children; `child` (N, 2) int32: a child reference, `>= 0` an
-    internal node, `< 0` the leaf `-(ref + 1)` whose triangles are slots `leaf * leaf_size ...`; `root`: the root's
-    reference; `depth`: the deepest leaf's depth (number of internal nodes above it)."""
+WIDTH = 4
+"""Children per BVH node and triangles per leaf (both 4): a node row holds 4 child boxes and references (28
+floats), a leaf row 4 triangles (36 floats), so nodes and leaves share one (rows, 36) table and a traversal step
+reads one row."""
 
+ROW = 36
+"""Floats per row of `Mesh.rows`."""
+
+_SAH_TRAVERSAL = 1.0
+"""SAH cost of one node visit, in units of one leaf visit (a leaf tests its 4 triangles in one vector op, so a
+leaf costs one step whatever its count; see `_sah_split`)."""
+
+
+class BVH(NamedTuple):
+    """Host BVH arrays (4-wide). `rows` (R, 36) float32: rows `0 .. n_leaves - 1` are leaves (triangle `k` of leaf
+    `r`: vertex `i`, coordinate `c` at `rows[r, (3 i + c) 4 + k]`, unused lanes zero), the others internal nodes
+    (child `k`'s box: `lo[a] = rows[r, 4 a + k]`, `hi[a] = rows[r, 12 + 4 a + k]`; its row `rows[r, 24 + k]` as a
+    float, -1 for no child); `order` (4 n_leaves,): the input triangle of each leaf slot (-1: unused); `root`: the
+    root's row; `depth`: internal nodes on the longest root-to-leaf path; `box`: the float32 bounds of all
+    triangles, rounded outward (lo then hi, 6 Python floats)."""
+
+    rows: np.ndarray
     order: np.ndarray
-    child_lo: np.ndarray
-    child_hi: np.ndarray
-    child: np.ndarray
+    n_leaves: int
     root: int
     depth: int
-    leaf_size: int
+    box: tuple
 
 
-def build_bvh(tris, leaf_size: int = LEAF_SIZE) -> BVH:
-    """Binary BVH over triangles `tris` (F, 3, 3), split at the object median along the longest axis of the
-    centroid bounds; leaves hold exactly `leaf_size` slots (the last one padded). Boxes are the float32 bounds
-    rounded outward."""
+def _area(lo, hi):
+    e = np.maximum(hi - lo, 0.0)
+    return e[..., 0] * e[..., 1] + e[..., 1] * e[..., 2] + e[..., 2] * e[..., 0]
+
+
+def _sah_split(lo_t, hi_t, cen, idx):
+    """Split the triangles `idx` (more than 4) in two by the surface area heuristic, sweeping every split of the
+    centroids sorted along each axis (pbrt-v4 and Embree bin the large nodes; the exact sweep is vectorized here,
+    the three axes at once). The cost of a side is its area times its number of 4-triangle blocks (Embree's block
+    SAH: a leaf step tests 4 triangles at the price of one), so the split favours full leaves. Returns both sides as
+    `(idx, lo, hi)` (float64 bounds)."""
+    n = len(idx)
+    srt = idx[np.argsort(cen[idx], axis=0, kind="stable").T]  # (3 axes, n)
+    lo, hi = lo_t[srt], hi_t[srt]  # (3, n, 3)
+    l_lo, l_hi = np.minimum.accumulate(lo, 1), np.maximum.accumulate(hi, 1)
+    r_lo = np.minimum.accumulate(lo[:, ::-1], 1)[:, ::-1]
+    r_hi = np.maximum.accumulate(hi[:, ::-1], 1)[:, ::-1]
+    k = np.arange(1, n)
+    cost = _area(l_lo[:, :-1], l_hi[:, :-1]) * ((k + 3) // 4) + _area(r_lo[:, 1:], r_hi[:, 1:]) * ((n - k + 3) // 4)
+    c = cen[srt[:, [0, -1]], np.arange(3)[:, None]]
+    cost[c[:, 0] == c[:, 1]] = np.inf  # no spread along this axis
+    a, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    if not np.isfinite(cost[a, j]):  # all centroids equal: any split
+        a, j = 0, n // 2 - 1
+    return ((srt[a, :j + 1], l_lo[a, j], l_hi[a, j]), (srt[a, j + 1:], r_lo[a, j + 1], r_hi[a, j + 1]))
+
+
+def build_bvh(tris) -> BVH:
+    """4-wide BVH over triangles `tris` (F, 3, 3) with leaves of at most 4 triangles, built top-down by the block
+    surface area heuristic (`_sah_split`): a node's children come from splitting, again and again, its child of
+    largest area that has more than 4 triangles, until it has 4 (Embree's wide-BVH build). Boxes are the float32
+    bounds rounded outward. Leaves are numbered depth-first (rows `0 ..`), internal nodes after them."""
     tris = np.asarray(tris, np.float64)
     F = tris.shape[0]
     lo_t, hi_t = tris.min(axis=1), tris.max(axis=1)
     cen = tris.mean(axis=1)
-    n_leaves = -(-F // leaf_size)
-    order = np.full(n_leaves * leaf_size, -1, np.int64)
-    child_lo, child_hi, child = [], [], []
-    leaf_count = [0]
 
-    def bounds(idx):
-        lo = np.nextafter(lo_t[idx].min(axis=0).astype(np.float32), np.float32(-np.inf))
-        hi = np.nextafter(hi_t[idx].max(axis=0).astype(np.float32), np.float32(np.inf))
-        return lo, hi
+    def box32(lo, hi):
+        return (np.nextafter(lo.astype(np.float32), np.float32(-np.inf)),
+                np.nextafter(hi.astype(np.float32), np.float32(np.inf)))
 
-    def make_leaf(idx):
-        leaf = leaf_count[0]
-        leaf_count[0] += 1
-        order[leaf * leaf_size:leaf * leaf_size + len(idx)] = idx
-        return -(leaf + 1)
-
-    # iterative build (explicit stack): internal nodes are numbered in creation order, leaves in depth-first order
-    if F <= leaf_size:
-        return BVH(order, np.zeros((1, 2, 3), np.float32), np.zeros((1, 2, 3), np.float32),
-                   np.full((1, 2), -1, np.int32), make_leaf(np.arange(F)), 0, leaf_size)
+    leaves, nodes = [], []  # leaves: index arrays; nodes: per child [reference ('L' | 'N', id), float32 box]
     depth = 0
-    # node slots are allocated when the node is created; children filled when split
-    stack = [(np.arange(F), None, 0, 0)]  # (faces, parent, side, depth)
     root = None
+    stack = [((np.arange(F), lo_t.min(0), hi_t.max(0)), None, 0, 0)]  # ((idx, lo, hi), parent, position, depth)
     while stack:
-        idx, parent, side, dep = stack.pop()
-        if len(idx) <= leaf_size:
-            ref = make_leaf(idx)
+        item, parent, pos, dep = stack.pop()
+        if len(item[0]) <= WIDTH:
+            ref = ("L", len(leaves))
+            leaves.append(item[0])
         else:
-            ref = len(child)
-            child.append([0, 0])
-            child_lo.append(np.zeros((2, 3), np.float32))
-            child_hi.append(np.zeros((2, 3), np.float32))
-            c = cen[idx]
-            axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
-            # left gets a whole number of full leaves: only the very last leaf can be partly empty
-            n_left = leaf_size * (-(-len(idx) // (2 * leaf_size)))
-            part = np.argpartition(c[:, axis], n_left - 1) if n_left < len(idx) else np.arange(len(idx))
-            left, right = idx[part[:n_left]], idx[part[n_left:]]
-            for s, sub in ((0, left), (1, right)):
-                child_lo[ref][s], child_hi[ref][s] = bounds(sub)
+            kids = [item]
+            while len(kids) < WIDTH:
+                big = [i for i, kk in enumerate(kids) if len(kk[0]) > WIDTH]
+                if not big:
+                    break
+                i = max(big, key=lambda i: _area(kids[i][1], kids[i][2]))
+                kids[i:i + 1] = list(_sah_split(lo_t, hi_t, cen, kids[i][0]))
+            ref = ("N", len(nodes))
+            nodes.append([[None, box32(kk[1], kk[2])] for kk in kids])
             depth = max(depth, dep + 1)
-            stack.append((right, ref, 1, dep + 1))
-            stack.append((left, ref, 0, dep + 1))
+            for j in range(len(kids) - 1, -1, -1):  # pushed in reverse: the first child's leaves come first
+                stack.append((kids[j], ref[1], j, dep + 1))
         if parent is None:
             root = ref
         else:
-            child[parent][side] = ref
-    return BVH(order, np.asarray(child_lo, np.float32), np.asarray(child_hi, np.float32),
-               np.asarray(child, np.int32), int(root), int(depth), leaf_size)
+            nodes[parent][pos][0] = ref
+    n_leaves = len(leaves)
+    if n_leaves + len(nodes) >= 2**24:
+        raise MeshError(f"{F} triangles: too many BVH rows for float32 references (at most about 50 million)")
+    rows = np.zeros((n_leaves + len(nodes), ROW), np.float32)
+    order = np.full(n_leaves * WIDTH, -1, np.int64)
+    counts = np.array([len(idx) for idx in leaves])
+    flat = np.concatenate(leaves)
+    lane = np.arange(len(flat)) - np.repeat(np.cumsum(counts) - counts, counts)
+    leaf = np.repeat(np.arange(n_leaves), counts)
+    order[leaf * WIDTH + lane] = flat
+    lv = rows[:n_leaves].reshape(n_leaves, 3, 3, WIDTH)
+    lv[leaf, :, :, lane] = tris[flat].astype(np.float32)
+    rows[:n_leaves] = lv.reshape(n_leaves, ROW)
+    for q, kids in enumerate(nodes):
+        row = rows[n_leaves + q]
+        row[24:28] = -1.0
+        for k, (ref, (lo, hi)) in enumerate(kids):
+            row[0:12].reshape(3, WIDTH)[:, k] = lo
+            row[12:24].reshape(3, WIDTH)[:, k] = hi
+            row[24 + k] = ref[1] if ref[0] == "L" else n_leaves + ref[1]
+    root_row = root[1] if root[0] == "L" else n_leaves + root[1]
+    lo, hi = box32(lo_t.min(0), hi_t.max(0))
+    return BVH(rows, order, n_leaves, int(root_row), int(depth), tuple(float(x) for x in np.concatenate([lo, hi])))
 
 
 # -------------------------------------------------------------------------------------------------------- the Module
@@ -455,30 +505,34 @@ class Mesh(eqx.Module):
     bsdf, to_world=None, smooth=False)`. The geometry is fixed once built (its arrays are the BVH's leaf order and
     are not differentiated); replacing its BSDF values with `eqx.tree_at` is fine.
 
-    **Fields:** `leaves` (leaves, 3 vertices, 3 coordinates, leaf_size): world-space vertices of each leaf's
-    triangles, one contiguous row per leaf (slot `s` is leaf `s // leaf_size`, lane `s % leaf_size`; padding slots
-    are zero and never hit); each triangle's vertices are sorted by their index in the file, `wind` (leaves,
-    leaf_size) is +1 where that kept the file's winding and -1 where it reversed it; `vn`: vertex normals in the
-    same layout, or None (flat normals); `boxes` (nodes, 2
-    children, lo/hi, 3) and `child` (nodes, 2): the BVH nodes (see `BVH`); `face` (slots,): the file's face index
-    of each slot (-1 for padding); static `root`, `stack_size`, `leaf_size`, `n_faces`.
+    **Fields:** `rows` (rows, 36): the 4-wide BVH (see `BVH`): rows `0 .. n_leaves - 1` are leaves of 4 triangle
+    slots (slot `s` is leaf `s // 4`, lane `s % 4`; unused slots are zero and never hit; `leaves` is the same data as
+    (leaves, 3 vertices, 3 coordinates, 4)) with world-space vertices; each triangle's vertices are sorted by their
+    index in the file, `wind` (leaves, 4) is +1 where that kept the file's winding and -1 where it reversed it;
+    `vn`: vertex normals in the `leaves` layout, or None (flat normals); `face` (slots,): the file's face index of
+    each slot (-1: unused); static `root` (the root's row), `box` (the whole mesh's float32 box, rounded outward:
+    lo then hi, 6 floats), `stack_size`, `n_leaves`, `n_faces`.
     """
 
-    leaves: Float[Array, "Nl 3 3 L"]
-    vn: Float[Array, "Nl 3 3 L"] | None
-    wind: Float[Array, "Nl L"]
-    boxes: Float[Array, "N 2 2 3"]
-    child: Int[Array, "N 2"]
+    rows: Float[Array, "R 36"]
+    vn: Float[Array, "Nl 3 3 4"] | None
+    wind: Float[Array, "Nl 4"]
     face: Int[Array, "S"]
     bsdf: AbstractBSDF
     root: int = eqx.field(static=True)
+    box: tuple = eqx.field(static=True)
     stack_size: int = eqx.field(static=True)
-    leaf_size: int = eqx.field(static=True)
+    n_leaves: int = eqx.field(static=True)
     n_faces: int = eqx.field(static=True)
+
+    @property
+    def leaves(self) -> Float[Array, "Nl 3 3 4"]:
+        """The leaf rows as (leaves, 3 vertices, 3 coordinates, 4 lanes)."""
+        return self.rows[: self.n_leaves].reshape(self.n_leaves, 3, 3, WIDTH)
 
     @classmethod
     def from_arrays(cls, vertices, faces, bsdf, normals=None, smooth: bool = False,
-                    leaf_size: int = LEAF_SIZE, path: str = "<mesh>") -> "Mesh":
+                    path: str = "<mesh>") -> "Mesh":
         """A mesh from world-space `vertices` (V, 3), `faces` (F, 3) and optional vertex `normals` (V, 3); smooth
         shading normals when `smooth` and normals are given (else flat). Validated (`MeshError`)."""
         data = MeshData(np.asarray(vertices, np.float64).reshape(-1, 3), np.asarray(faces, np.int64).reshape(-1, 3),
@@ -492,29 +546,29 @@ class Mesh(eqx.Module):
         faces = np.take_along_axis(data.faces, perm, axis=1)
         wind = np.where((perm[:, 0] < perm[:, 1]) ^ (perm[:, 1] < perm[:, 2]) ^ (perm[:, 0] < perm[:, 2]), 1.0, -1.0)
         tri = data.vertices[faces]
-        bvh = build_bvh(tri, leaf_size)
+        bvh = build_bvh(tri)
         slot_ok = bvh.order >= 0
         safe = np.where(slot_ok, bvh.order, 0)
-        def per_leaf(x):  # (slots, 3, 3) -> (leaves, 3, 3, leaf_size), padding slots zero
+
+        def per_leaf(x):  # (faces, 3, 3) -> (leaves, 3, 3, 4), unused slots zero
             x = np.where(slot_ok[:, None, None], x.astype(np.float32)[safe], 0.0).astype(np.float32)
-            return jnp.asarray(np.ascontiguousarray(x.reshape(-1, leaf_size, 3, 3).transpose(0, 2, 3, 1)))
+            return jnp.asarray(np.ascontiguousarray(x.reshape(-1, WIDTH, 3, 3).transpose(0, 2, 3, 1)))
 
         vn = per_leaf(data.normals[faces]) if smooth else None
-        boxes = np.stack([bvh.child_lo, bvh.child_hi], axis=2)
-        w = np.where(slot_ok, wind[safe], 1.0).astype(np.float32).reshape(-1, leaf_size)
-        return cls(leaves=per_leaf(tri), vn=vn, wind=jnp.asarray(w), boxes=jnp.asarray(boxes),
-                   child=jnp.asarray(bvh.child),
-                   face=jnp.asarray(bvh.order.astype(np.int32)), bsdf=bsdf, root=bvh.root,
-                   stack_size=max(1, bvh.depth + 1), leaf_size=leaf_size, n_faces=int(data.faces.shape[0]))
+        w = np.where(slot_ok, wind[safe], 1.0).astype(np.float32).reshape(-1, WIDTH)
+        return cls(rows=jnp.asarray(bvh.rows), vn=vn, wind=jnp.asarray(w),
+                   face=jnp.asarray(bvh.order.astype(np.int32)), bsdf=bsdf, root=bvh.root, box=bvh.box,
+                   stack_size=max(1, (WIDTH - 1) * bvh.depth), n_leaves=bvh.n_leaves,
+                   n_faces=int(data.faces.shape[0]))
 
     @classmethod
-    def from_file(cls, path, bsdf, to_world=None, smooth: bool = False, leaf_size: int = LEAF_SIZE) -> "Mesh":
+    def from_file(cls, path, bsdf, to_world=None, smooth: bool = False) -> "Mesh":
         """A mesh from an OBJ/PLY file, with an optional `to_world` (a 4x4 matrix or a scene file's transform
         dict, see `transform_matrix`)."""
         data = read_mesh_cached(path)
         m = to_world if isinstance(to_world, np.ndarray) else transform_matrix(to_world)
         data = apply_transform(data, m)
-        return cls.from_arrays(data.vertices, data.faces, bsdf, data.normals, smooth, leaf_size, os.fspath(path))
+        return cls.from_arrays(data.vertices, data.faces, bsdf, data.normals, smooth, os.fspath(path))
 
 
 # ------------------------------------------------------------------------------------------------- intersection
@@ -586,78 +640,172 @@ def intersect_triangles(rf: RayFrame, tris, t_max):
     return jnp.where(ok & (t > T_MIN) & (t < t_max), t, jnp.inf)
 
 
-def _slab(rf_o, inv_d, lo, hi, t_max):
-    """Entry distance of the ray into boxes (lo, hi) (..., 3), inf when missed or entered beyond `t_max`."""
-    t0 = (lo - rf_o[None, :]) * inv_d[None, :]
-    t1 = (hi - rf_o[None, :]) * inv_d[None, :]
-    tn = jnp.max(jnp.minimum(t0, t1), axis=-1)
-    tf = jnp.min(jnp.maximum(t0, t1), axis=-1) * _BOX_SLACK
+class _Walk(NamedTuple):
+    """One ray's traversal state: `cur` the row to visit next (-1: done), the stack of rows still to visit (`sp`
+    entries), the nearest hit so far (`t_best`, `slot`, -1 for none) and the ray (its frame and inverse
+    direction)."""
+
+    cur: Int[Array, ""]
+    stack: Int[Array, "S"]
+    sp: Int[Array, ""]
+    t_best: Float[Array, ""]
+    slot: Int[Array, ""]
+    rf: RayFrame
+    inv_d: Float[Array, "3"]
+
+
+def _walk_start(root: int, S: int, box: tuple, o, d, t_max) -> _Walk:
+    """A ray's walk from the root; a ray that misses the whole mesh's box `(lo, hi)` before `t_max` is done at once
+    (no step: under `vmap` the batch's first, full-width stage then runs only if enough rays remain). The box
+    contains every child box, and the rounding of the slab test is monotonic, so no ray that hits a child box
+    misses it."""
+    tiny = jnp.float32(1e-30)
+    inv_d = 1.0 / jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d)
+    t_max = jnp.asarray(t_max, jnp.float32)
+    lo, hi = np.asarray(box[:3], np.float32), np.asarray(box[3:], np.float32)
+    t0, t1 = (lo - o) * inv_d, (hi - o) * inv_d
+    tn = jnp.max(jnp.minimum(t0, t1))
+    tf = jnp.min(jnp.maximum(t0, t1)) * _BOX_SLACK
     hit = (tn <= tf) & (tf > T_MIN) & (tn < t_max)
-    return jnp.where(hit, jnp.maximum(tn, 0.0), jnp.inf)
+    return _Walk(jnp.where(hit, jnp.int32(root), -1), jnp.full(S, -1, jnp.int32), jnp.int32(0), t_max,
+                 jnp.int32(-1), ray_frame(o, d), inv_d)
 
 
-_EMPTY = np.int32(2**31 - 1)
-"""The traversal's 'no node' reference: the stack is empty and the ray is done."""
+def _cswap(a, b):
+    """Compare-exchange of (key, row) pairs by key."""
+    swap = b[0] < a[0]
+    return ((jnp.where(swap, b[0], a[0]), jnp.where(swap, b[1], a[1])),
+            (jnp.where(swap, a[0], b[0]), jnp.where(swap, a[1], b[1])))
+
+
+def _walk_step(rows, n_leaves: int, any_hit: bool, w: _Walk) -> _Walk:
+    """One traversal step of one ray: read the row `cur` (one gather). A leaf: test its 4 triangles, keep the
+    nearest hit. A node: test its 4 child boxes (one vector slab test), go to the nearest child hit and push the
+    others, farther first (so they pop nearest first); with none hit, pop the stack. A done ray (`cur` -1) is left
+    as it is. With `any_hit`, the first hit ends the walk."""
+    active = w.cur >= 0
+    r = rows[jnp.maximum(w.cur, 0)]
+    is_leaf = w.cur < n_leaves
+    o = w.rf.o
+    # node: the 4 child boxes, (axis, child)
+    lo, hi, ref = r[0:12].reshape(3, WIDTH), r[12:24].reshape(3, WIDTH), r[24:28]
+    t0 = (lo - o[:, None]) * w.inv_d[:, None]
+    t1 = (hi - o[:, None]) * w.inv_d[:, None]
+    tn = jnp.max(jnp.minimum(t0, t1), axis=0)
+    tf = jnp.min(jnp.maximum(t0, t1), axis=0) * _BOX_SLACK
+    ok = (ref >= 0) & (tn <= tf) & (tf > T_MIN) & (tn < w.t_best)
+    key = jnp.where(ok, jnp.maximum(tn, 0.0), jnp.inf)
+    refi = ref.astype(jnp.int32)
+    e = [(key[k], refi[k]) for k in range(WIDTH)]
+    e[0], e[1] = _cswap(e[0], e[1])  # a sorting network on 4: (0,1) (2,3) (0,2) (1,3) (1,2)
+    e[2], e[3] = _cswap(e[2], e[3])
+    e[0], e[2] = _cswap(e[0], e[2])
+    e[1], e[3] = _cswap(e[1], e[3])
+    e[1], e[2] = _cswap(e[1], e[2])
+    n_hit = jnp.sum(ok.astype(jnp.int32))
+    # leaf: its 4 triangles
+    tt = intersect_triangles(w.rf, r.reshape(3, 3, WIDTH), w.t_best)
+    k = jnp.argmin(tt)
+    better = active & is_leaf & (tt[k] < w.t_best)
+    t_best = jnp.where(better, tt[k], w.t_best)
+    slot = jnp.where(better, w.cur * WIDTH + k.astype(jnp.int32), w.slot)
+    # next row: descend to the nearest child hit, pushing the m others; or pop. The stack is written and read with
+    # masks over its slots (elementwise; a per-lane scatter is slow under vmap): slots sp, sp + 1, sp + 2 get
+    # children m, m - 1, m - 2 (farthest first); the writes past sp + m - 1, and all writes when popping, land
+    # above the new top, where nothing live is kept, so they need no mask.
+    descend = ~is_leaf & (n_hit > 0)
+    m = n_hit - 1
+    slots = jnp.arange(w.stack.shape[0], dtype=jnp.int32)
+    q = slots - w.sp
+    v0 = jnp.where(m == 3, e[3][1], jnp.where(m == 2, e[2][1], e[1][1]))
+    v1 = jnp.where(m == 3, e[2][1], e[1][1])
+    stack = jnp.where(q == 0, v0, jnp.where(q == 1, v1, jnp.where(q == 2, e[1][1], w.stack)))
+    top = jnp.max(jnp.where(slots == w.sp - 1, w.stack, -1))
+    nxt = jnp.where(descend, e[0][1], top)
+    sp = jnp.where(descend, w.sp + m, jnp.maximum(w.sp - 1, 0))
+    if any_hit:
+        nxt = jnp.where(slot >= 0, -1, nxt)
+    # a done ray's stack and stack pointer are dead: only its hit is kept
+    return w._replace(cur=jnp.where(active, nxt, -1), stack=stack, sp=sp, t_best=t_best, slot=slot)
+
+
+def _walk_one(rows, o, d, t_max, *, root, S, box, n_leaves, any_hit):
+    """One ray's traversal: `_walk_step` in a `lax.while_loop` until the stack is empty."""
+    w = jax.lax.while_loop(lambda w: w.cur >= 0, functools.partial(_walk_step, rows, n_leaves, any_hit),
+                           _walk_start(root, S, box, o, d, t_max))
+    return w.t_best, w.slot
+
+
+_MIN_WIDTH = 16
+"""The narrowest stage of the batched traversal (`_walk_batch`): each stage is one more loop to compile (seconds on a
+CPU), and below this few lanes are left to gain from."""
+
+_SHRINK = 4
+"""Each stage of the batched traversal has this many times fewer lanes than the one before."""
+
+
+def _stage_widths(n: int) -> list[int]:
+    """Lane counts of the batched traversal's stages: `n`, then `1 / _SHRINK` of the previous (rounded up) while that
+    is at least `_MIN_WIDTH`: 1024 rays run in stages of 1024, 256, 64 and 16 lanes, 48 rays in one."""
+    widths = [n]
+    while -(-widths[-1] // _SHRINK) >= _MIN_WIDTH:
+        widths.append(-(-widths[-1] // _SHRINK))
+    return widths
+
+
+def _walk_batch(rows, O, D, TM, *, root, S, box, n_leaves, any_hit):
+    """Traversal of a batch of rays `O`, `D` (n, 3), `TM` (n,) with lane compaction: a vectorized while loop runs
+    all lanes until at most a quarter of them are still walking; those are gathered into a batch of a quarter the
+    size, and so on down to `_MIN_WIDTH` lanes, which run until all are done. A vectorized while loop costs as many
+    full-width steps as its slowest lane needs; compaction makes the few long walks (rays grazing many boxes) run
+    narrow. The results equal the per-ray walk's (`_walk_one`): the same steps, lane by lane."""
+    n = O.shape[0]
+    step = jax.vmap(functools.partial(_walk_step, rows, n_leaves, any_hit))
+    w = jax.vmap(functools.partial(_walk_start, root, S, box))(O, D, TM)
+    lane = jnp.arange(n, dtype=jnp.int32)
+    t_out, slot_out = w.t_best, w.slot
+    widths = _stage_widths(n)
+    for i, width in enumerate(widths):
+        if i > 0:  # the walking lanes first (at most `width` of them), then done ones
+            pick = jnp.argsort(w.cur < 0, stable=True)[:width]
+            w = jax.tree.map(lambda x: x[pick], w)
+            lane = lane[pick]
+        stop = widths[i + 1] if i + 1 < len(widths) else 0
+        w = jax.lax.while_loop(lambda w: jnp.sum((w.cur >= 0).astype(jnp.int32)) > stop, step, w)
+        t_out = t_out.at[lane].set(w.t_best, unique_indices=True)
+        slot_out = slot_out.at[lane].set(w.slot, unique_indices=True)
+    return t_out, slot_out
+
+
+@functools.lru_cache(maxsize=None)
+def _walker(root: int, S: int, box: tuple, n_leaves: int, any_hit: bool):
+    """The traversal `(rows, o, d, t_max) -> (t, slot)` of one ray, with a batching rule (`custom_vmap`): under
+    `vmap` over rays it runs `_walk_batch` (lane compaction) instead of a vectorized per-ray loop."""
+    kw = dict(root=root, S=S, box=box, n_leaves=n_leaves, any_hit=any_hit)
+    one = functools.partial(_walk_one, **kw)
+    walk = jax.custom_batching.custom_vmap(one)
+
+    @walk.def_vmap
+    def _rule(axis_size, in_batched, rows, o, d, t_max):
+        rb, ob, db, tb = in_batched
+        if rb:  # a batch of meshes: the plain vectorized walk
+            axes = tuple(0 if b else None for b in in_batched)
+            return jax.vmap(one, in_axes=axes)(rows, o, d, t_max), (True, True)
+        O = o if ob else jnp.broadcast_to(o, (axis_size, 3))
+        D = d if db else jnp.broadcast_to(d, (axis_size, 3))
+        TM = t_max if tb else jnp.broadcast_to(t_max, (axis_size,))
+        return _walk_batch(rows, O, D, TM, **kw), (True, True)
+
+    return walk
 
 
 def _traverse(mesh: Mesh, o, d, t_max, any_hit: bool):
     """Nearest hit (or, with `any_hit`, whether any hit) with `t < t_max`: `(t, slot)`; `slot` -1 on a miss.
-
-    Stack-based traversal in a `lax.while_loop`: the current node reference `cur`; an internal node tests both
-    children's boxes and goes to the nearer one hit, pushing the farther; a leaf tests its `leaf_size` triangles;
-    then the next reference comes from the stack. Runs on stop-gradient inputs (no derivative flows through it)."""
-    o, d, t_max = jax.lax.stop_gradient((o, d, t_max))
-    leaves, boxes, child = jax.lax.stop_gradient((mesh.leaves, mesh.boxes, mesh.child))
-    rf = ray_frame(o, d)
-    tiny = jnp.float32(1e-30)
-    inv_d = 1.0 / jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d)
-    L, S = mesh.leaf_size, mesh.stack_size
-    lane = jnp.arange(L, dtype=jnp.int32)
-    slots = jnp.arange(S, dtype=jnp.int32)
-
-    def cond(c):
-        cur, _, _, t_best, slot = c
-        go = cur != _EMPTY
-        return go & (slot < 0) if any_hit else go
-
-    def body(c):
-        cur, stack, sp, t_best, slot = c
-        is_leaf = cur < 0
-        node = jnp.maximum(cur, 0)
-        leaf = jnp.maximum(-cur - 1, 0)
-        # internal node: both children's boxes
-        box = boxes[node]
-        tn = _slab(o, inv_d, box[:, 0], box[:, 1], t_best)
-        h0, h1 = jnp.isfinite(tn[0]), jnp.isfinite(tn[1])
-        c0, c1 = child[node, 0], child[node, 1]
-        first_is_0 = tn[0] <= tn[1]
-        near = jnp.where(first_is_0, c0, c1)
-        far = jnp.where(first_is_0, c1, c0)
-        # leaf: its triangles
-        base = leaf * L
-        tt = intersect_triangles(rf, leaves[leaf], t_best)
-        k = jnp.argmin(tt)
-        t_leaf = tt[k]
-        better = is_leaf & (t_leaf < t_best)
-        t_best = jnp.where(better, t_leaf, t_best)
-        slot = jnp.where(better, base + lane[k], slot)
-        # next node
-        both = ~is_leaf & h0 & h1
-        one = ~is_leaf & (h0 ^ h1)
-        # the stack is updated and read with one-hot masks (elementwise; a per-lane scatter is slow under vmap)
-        push = both & (sp < S)
-        stack = jnp.where(push & (slots == sp), far, stack)
-        sp_pushed = jnp.where(push, sp + 1, sp)
-        top = jnp.sum(jnp.where(slots == sp_pushed - 1, stack, 0))
-        popped = jnp.where(sp_pushed > 0, top, _EMPTY)
-        nxt = jnp.where(both, near, jnp.where(one, jnp.where(h0, c0, c1), popped))
-        sp_new = jnp.where(both | one, sp_pushed, jnp.maximum(sp_pushed - 1, 0))
-        return nxt, stack, sp_new, t_best, slot
-
-    init = (jnp.int32(mesh.root), jnp.zeros(S, jnp.int32), jnp.int32(0), jnp.asarray(t_max, jnp.float32),
-            jnp.int32(-1))
-    _, _, _, t_best, slot = jax.lax.while_loop(cond, body, init)
-    return t_best, slot
+    Runs on stop-gradient inputs (no derivative flows through it); under `vmap`, batched with lane compaction."""
+    o, d, t_max = jax.lax.stop_gradient((jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32),
+                                         jnp.asarray(t_max, jnp.float32)))
+    rows = jax.lax.stop_gradient(mesh.rows)
+    return _walker(mesh.root, mesh.stack_size, mesh.box, mesh.n_leaves, any_hit)(rows, o, d, t_max)
 
 
 def mesh_nearest(mesh: Mesh, o, d, t_max=jnp.inf):
@@ -675,8 +823,8 @@ def mesh_hit(mesh: Mesh, o, d, slot):
     """Differentiable distance and front normal `(t, n)` at the hit triangle `slot` (>= 0): `t` from the
     triangle's plane, `n` its geometric normal, or the interpolated vertex normals (smooth meshes), flipped to the
     geometric front side's hemisphere so that it stays a front normal."""
-    L = mesh.leaf_size
-    tri = jax.lax.stop_gradient(mesh.leaves[slot // L, :, :, slot % L])
+    L = WIDTH
+    tri = jax.lax.stop_gradient(mesh.rows[slot // L].reshape(3, 3, L)[:, :, slot % L])
     ng = cross(tri[1] - tri[0], tri[2] - tri[0]) * jax.lax.stop_gradient(mesh.wind[slot // L, slot % L])
     t = safe_div(dot(tri[0] - o, ng), dot(d, ng))
     n = safe_normalize(ng)

@@ -20,16 +20,14 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._integrator import (
     SamplingOptions,
-    bounce,
     make_tracer,
     n_dims,
     n_iterations,
-    russian_roulette,
-    start_path,
     trace_path,
 )
-from ._random import hashed_uniforms, key_words, uniforms
+from ._random import key_words, uniforms
 from ._scene import Scene, pack
+from ._unbounded import moments as unbounded_moments, trace_items_unbounded
 from ._validate import _check_render_args
 
 DEFAULT_BATCH_PATHS = 1 << 16
@@ -102,62 +100,17 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
 def _trace_items_unbounded(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, valid: Array,
                            options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS,
                            moments: bool = False):
-    """`_trace_items` for paths of any length (`max_depth = -1`), with path regeneration.
-
-    The items' paths form one queue (path `q` is row `q % chunk` of item `q // chunk`); `chunk` lanes trace one
-    bounce each per iteration, and a lane whose path ended (absorbed, escaped, or stopped by Russian roulette)
-    scatter-adds its radiance to its pixel and takes the next path of the queue. The work is the sum of the paths'
-    lengths (plus the last paths' tail), not lanes x the longest path. Path `(layer, row)` draws bounce `b`'s
-    uniforms from the same hash table as `_trace_items` (row `row`, columns `b K .. b K + K - 1`), so the image
-    depends only on the scene, the key and spp. Forward-mode differentiable (`jax.jvp`, `jax.jacfwd`); a
-    `lax.while_loop` has no reverse mode."""
-    cam = scene.camera
-    n_pix = cam.height * cam.width
-    tracer = make_tracer(scene, pack(scene), options, proposal)
-    K = n_dims(scene)
+    """`_trace_items` for paths of any length (`max_depth = -1`), with path regeneration (`_unbounded`): the
+    image depends only on the scene, the key and spp. Differentiable in forward mode (`jax.jvp`, `jax.jacfwd`) and
+    in reverse mode (`jax.grad`: path replay, memory independent of the path length; not for "reparam"). With
+    `moments` (`render(..., variance=True)`), `_unbounded.moments` (the plain loop, also summing the squares):
+    forward mode only."""
     chunk, n_ch = n_chunks(scene, chunk_paths)
     words = jax.vmap(lambda layer: jnp.stack([key_words(k) for k in jax.random.split(jax.random.fold_in(key, layer))])
                      )(layer_ids)  # (items, 2 [pixel, path], 3)
-    total = jnp.sum(valid.astype(jnp.int32)) * chunk  # valid items come first
-    cols = jnp.arange(K, dtype=jnp.uint32)
-
-    def start(q):
-        """Camera path number `q` of the queue: its row, item, start state (dead if it is a padding row)."""
-        item, j = q // chunk, (q % chunk).astype(jnp.uint32)
-        row = chunk_ids[item] * chunk + j
-        y, x = jnp.divmod(row % n_pix, cam.width)
-        jitter = hashed_uniforms(words[item, 0], row, jnp.arange(2, dtype=jnp.uint32))
-        o, d = cam.generate_ray(jnp.stack([x, y]).astype(jnp.float32) + jitter)
-        st = start_path(o, d)
-        return row, item, st._replace(alive=row < n_pix)
-
-    def body(c):
-        acc, state, row, item, b, next_q = c
-        need = ~state.alive
-        q = next_q + jnp.cumsum(need) - 1
-        take = need & (q < total)
-        row_n, item_n, st_n = jax.vmap(start)(jnp.minimum(q, total - 1))
-        pick = lambda a, b_: jnp.where(take.reshape(take.shape + (1,) * (a.ndim - 1)), a, b_)
-        state = jax.tree.map(pick, st_n, state)
-        row, item, b = pick(row_n, row), pick(item_n, item), pick(jnp.zeros_like(b), b)
-        U = jax.vmap(lambda it, r, bb: hashed_uniforms(words[it, 1], r, bb.astype(jnp.uint32) * K + cols))(item, row, b)
-        new = jax.vmap(lambda st, bb, u: russian_roulette(tracer, bounce(tracer, st, bb, u), bb, u))(state, b, U)
-        ended = state.alive & ~new.alive
-        slot = jnp.where(ended, row, n_ch * chunk)
-        L_end = jnp.where(ended[:, None], new.L, 0.0)
-        terms = (L_end, L_end * L_end) if moments else (L_end,)
-        acc = tuple(a.at[slot].add(x, mode="drop") for a, x in zip(acc, terms))
-        return acc, new, row, item, b + 1, next_q + jnp.sum(take.astype(jnp.int32))
-
-    def cond(c):
-        return jnp.any(c[1].alive) | (c[5] < total)
-
-    dead = jax.vmap(lambda q: start(q)[2])(jnp.zeros(chunk, jnp.int32))._replace(alive=jnp.zeros(chunk, bool))
-    zero = jnp.zeros(chunk, jnp.uint32)
-    acc = tuple(jnp.zeros((n_ch * chunk, 3), jnp.float32) for _ in range(2 if moments else 1))
-    init = (acc, dead, zero, jnp.zeros(chunk, jnp.int32), zero, jnp.int32(0))
-    acc = jax.lax.while_loop(cond, body, init)[0]
-    return acc if moments else acc[0]
+    if moments:
+        return unbounded_moments(scene, words, chunk_ids, valid, proposal, options=options, chunk=chunk, n_ch=n_ch)
+    return trace_items_unbounded(scene, words, chunk_ids, valid, options, proposal, chunk, n_ch)
 
 
 def sampling_options(sampling: SamplingOptions | None = None, **fields) -> SamplingOptions:

@@ -17,8 +17,11 @@ import pytest
 import jaxfog as jf
 from helpers import image_and_quadrant_means, jaxfog_and_mitsuba_images
 from jaxfog._mesh import (
+    WIDTH,
     MeshError,
+    _stage_widths,
     brute_force_nearest,
+    build_bvh,
     intersect_triangles,
     mesh_nearest,
     mesh_occluded,
@@ -91,6 +94,12 @@ def box_mesh(lo, hi, k):
 
 def _unit(x):
     return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def _per_ray(fn, *args):
+    """`fn` over rays one at a time (`lax.map`: the per-ray traversal loop, without the batched walk's stages, each
+    one more loop to compile)."""
+    return jax.jit(lambda *a: jax.lax.map(lambda x: fn(*x), a))(*args)
 
 
 # ------------------------------------------------------------------------------------------- ray/triangle
@@ -171,17 +180,18 @@ def test_no_misses_through_shared_edges_and_vertices(torus):
     goal = np.concatenate([targets, targets])
     d = _unit(goal - origins)
     o32, d32 = jnp.asarray(origins, jnp.float32), jnp.asarray(d, jnp.float32)
-    t, slot = jax.jit(jax.vmap(lambda a, b: mesh_nearest(mesh, a, b)))(o32, d32)
+    t, slot = _per_ray(lambda a, b: mesh_nearest(mesh, a, b), o32, d32)
     assert np.all(np.asarray(slot) >= 0), f"{int(np.sum(np.asarray(slot) < 0))} of {len(d)} rays leaked"
     dist = np.linalg.norm(goal - origins, axis=1) + 1.0
-    blocked = jax.jit(jax.vmap(lambda a, b, c: mesh_occluded(mesh, a, b, c)))(o32, d32, jnp.asarray(dist, jnp.float32))
+    blocked = _per_ray(lambda a, b, c: mesh_occluded(mesh, a, b, c), o32, d32, jnp.asarray(dist, jnp.float32))
     assert np.all(np.asarray(blocked))
 
 
 def test_bvh_hits_equal_brute_force(torus):
     """Random rays (through the torus' bounds, and from inside it) with a torus and with a triangle soup: the BVH's
     nearest hit equals brute force over every triangle (same distance; same triangle), and any-hit agrees with
-    'brute-force distance < limit' for random limits."""
+    'brute-force distance < limit' for random limits. (The per-ray walk, one loop to compile; the batched walk that
+    renders use is checked equal to it in `test_batched_traversal_equals_the_per_ray_walk`.)"""
     v, f, torus_m = torus
     rng = np.random.default_rng(3)
     soup = rng.uniform(-1, 1, (3000, 1, 3)) + 0.15 * rng.normal(size=(3000, 3, 3))
@@ -193,14 +203,73 @@ def test_bvh_hits_equal_brute_force(torus):
     o, d = jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32)
     limit = jnp.asarray(rng.uniform(0.1, 4.0, n), jnp.float32)
     for mesh in (torus_m, soup_m):
-        tb, sb = jax.jit(jax.vmap(lambda a, b: mesh_nearest(mesh, a, b)))(o, d)
+        tb, sb = _per_ray(lambda a, b: mesh_nearest(mesh, a, b), o, d)
         tr, sr = jax.jit(jax.vmap(lambda a, b: brute_force_nearest(mesh, a, b)))(o, d)
         tb, sb, tr, sr = map(np.asarray, (tb, sb, tr, sr))
         assert 0.2 < np.isfinite(tr).mean() < 0.98
         np.testing.assert_array_equal(tb, tr)
         assert np.mean(sb == sr) > 0.999  # exact ties (a ray through a shared edge) may pick either triangle
-        occ = np.asarray(jax.jit(jax.vmap(lambda a, b, c: mesh_occluded(mesh, a, b, c)))(o, d, limit))
+        occ = np.asarray(_per_ray(lambda a, b, c: mesh_occluded(mesh, a, b, c), o, d, limit))
         np.testing.assert_array_equal(occ, tr < np.asarray(limit))
+
+
+def test_bvh_structure(torus):
+    """The 4-wide SAH BVH: every triangle sits in exactly one leaf slot, every child box holds (in float32) all the
+    triangles below it, and the deepest path fits the traversal's stack (3 entries pushed per level at most)."""
+    v, f, _ = torus
+    tris = v[f]
+    bvh = build_bvh(tris)
+    assert np.array_equal(np.sort(bvh.order[bvh.order >= 0]), np.arange(len(f)))
+    rows, nl = bvh.rows, bvh.n_leaves
+    leaf_tris = rows[:nl].reshape(nl, 3, 3, WIDTH)
+
+    def points(r):  # float32 vertices of all triangles below row r
+        if r < nl:
+            k = np.sum(bvh.order[r * WIDTH:(r + 1) * WIDTH] >= 0)
+            return leaf_tris[r, :, :, :k].transpose(2, 0, 1).reshape(-1, 3)
+        kids = rows[r, 24:28].astype(int)
+        return np.concatenate([points(c) for c in kids if c >= 0])
+
+    def depth(r):
+        return 0 if r < nl else 1 + max(depth(c) for c in rows[r, 24:28].astype(int) if c >= 0)
+
+    for r in range(nl, len(rows)):
+        for k, c in enumerate(rows[r, 24:28].astype(int)):
+            if c < 0:
+                continue
+            p = points(c)
+            lo, hi = rows[r, 0:12].reshape(3, WIDTH)[:, k], rows[r, 12:24].reshape(3, WIDTH)[:, k]
+            assert np.all(p >= lo) and np.all(p <= hi)
+    assert depth(bvh.root) == bvh.depth
+    assert (WIDTH - 1) * bvh.depth >= 1
+
+
+def test_batched_traversal_equals_the_per_ray_walk(torus):
+    """Under `vmap` the traversal runs batched with lane compaction (`custom_vmap`); without `vmap` (`lax.map`) it is
+    the per-ray while loop. Both give the same nearest hits and shadow-ray answers, bit for bit, for a batch of
+    120 rays (stages of 120 and 30 lanes), with a scalar limit (nearest hits) and per-ray limits (shadow rays);
+    a `vmap` over meshes (their arrays batched) takes the plain vectorized walk and agrees too."""
+    import equinox as eqx
+
+    v, f, mesh = torus
+    assert _stage_widths(120) == [120, 30] and _stage_widths(48) == [48] and _stage_widths(1024)[-1] == 16
+    rng = np.random.default_rng(7)
+    for n in (120,):
+        o = rng.uniform(-2, 2, (n, 3))
+        o[: n // 3] *= 0.2
+        d = _unit(rng.uniform(-1.2, 1.2, (n, 3)) - o)
+        o, d = jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32)
+        limit = jnp.asarray(rng.uniform(0.1, 4.0, n), jnp.float32)
+        both = lambda a, b, c: (mesh_nearest(mesh, a, b), mesh_occluded(mesh, a, b, c))  # noqa: E731
+        batched = jax.jit(jax.vmap(both))(o, d, limit)
+        per_ray = _per_ray(both, o, d, limit)
+        for a, b in zip(jax.tree.leaves(batched), jax.tree.leaves(per_ray)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        assert 0.2 < np.mean(np.asarray(batched[0][1]) >= 0) < 0.98
+    two = jnp.stack([mesh.rows, mesh.rows])
+    t2, s2 = jax.jit(jax.vmap(lambda r: mesh_nearest(eqx.tree_at(lambda m: m.rows, mesh, r), o[0], d[0])))(two)
+    t1, s1 = mesh_nearest(mesh, o[0], d[0])
+    assert np.all(np.asarray(t2) == np.asarray(t1)) and np.all(np.asarray(s2) == np.asarray(s1))
 
 
 # ---------------------------------------------------------------------------------------------------- renders
