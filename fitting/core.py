@@ -322,15 +322,22 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         from the rounds' pairs of renders at one point with independent keys (unbiased per element; summed over
         pixels in the sandwich below, so one draw per pixel and round is enough). The target's from its header's
         spp (the same per-sample variance as the fit's renders, `1 / (spp_T f^2)` of it: a pooled pixel holds
-        f^2 spp_T samples) or, without one, from the target itself (`block_noise`)."""
+        f^2 spp_T samples) or, without one (a foreign target), its level from the target itself (`block_noise`,
+        the view's mean) and its shape over the pixels from the renders' `u`: the per-pixel block estimate is
+        largest exactly where the target's own noise came out large (a firefly), and weights from it would give the
+        target's fireflies less say than its dark draws, biasing the fit toward the typical, darker image (seen on
+        Mitsuba targets of a spot light: most fit blocks 3.4-3.6% darker than their expectation)."""
         u = np.mean(state["noise"][-NOISE_ROUNDS:], axis=0) if state["noise"] else None
         s2_T, at = [], 0
         for v, sc, nv in zip(views, problem.scales, sizes):
+            tv = v.target_var if v.target_var is not None else np.zeros(v.target.shape)
+            own = np.asarray(tv, np.float64).ravel() / (sc * sc * problem.n)
             if v.target_spp and u is not None:
                 s2_T.append(u[at:at + nv] * cfg.spp / (v.target_spp * v.downscale ** 2))
+            elif u is not None and np.mean(u[at:at + nv]) > 0:
+                s2_T.append(u[at:at + nv] * (np.mean(own) / np.mean(u[at:at + nv])))
             else:
-                tv = v.target_var if v.target_var is not None else np.zeros(v.target.shape)
-                s2_T.append(np.asarray(tv, np.float64).ravel() / (sc * sc * problem.n))
+                s2_T.append(own)
             at += nv
         return (u if u is not None else np.zeros(problem.n)), np.concatenate(s2_T)
 
