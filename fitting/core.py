@@ -319,8 +319,8 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
 
     def noise_model():
         """Per-element variances of the (scaled) residual: the target's and one render's at `spp`. The render's, u,
-        from the rounds' pairs of renders at one point with independent keys (unbiased per element; summed over
-        pixels in the sandwich below, so one draw per pixel and round is enough). The target's from its header's
+        from the rounds' value renders' own per-pixel sample variances (`render(..., variance=True)`, K x spp samples
+        each; the mean of the last `NOISE_ROUNDS` rounds). The target's from its header's
         spp (the same per-sample variance as the fit's renders, `1 / (spp_T f^2)` of it: a pooled pixel holds
         f^2 spp_T samples) or, without one (a foreign target), its level from the target itself (`block_noise`,
         the view's mean) and its shape over the pixels from the renders' `u`: the per-pixel block estimate is
@@ -395,9 +395,6 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         if cfg.solver == "lm" and cfg.decorrelate:
             y_new = unshrink(y0, sol.value, args, jax.random.fold_in(key_val, 1), factor)
         return y_new, args
-
-    def with_residual(args):
-        return jax.jacfwd(lambda yy: (lambda r: (r, r))(problem.residuals(yy, args)), has_aux=True)
 
     def unshrink(y0, y_lm, args, key3, factor):
         """Undo the shrinkage of a decorrelated LM step. The step solves `J1^T J1 d = -J1^T e` with the Jacobian
