@@ -34,6 +34,7 @@ from ._medium import (
     AbstractMedium,
     FlightSample,
     branch_probability,
+    check_phase_and_extent,
     sampling_extinction,
 )
 from ._phase import AbstractPhaseFunction, HenyeyGreenstein
@@ -171,10 +172,7 @@ class HeightFog(AbstractMedium):
         check_range("HeightFog", "base_height", self.base_height)
         check_range("HeightFog", "albedo", self.albedo, 0.0, 1.0)
         check_nonzero("HeightFog", "up", self.up)
-        if not isinstance(self.phase, AbstractPhaseFunction):
-            raise TypeError(f"HeightFog.phase must be a phase function, got {type(self.phase).__name__}")
-        if not (isinstance(self.extent, (int, float)) and 0 < self.extent < float("inf")):
-            raise ValueError(f"HeightFog.extent = {self.extent!r} must be a finite number > 0")
+        check_phase_and_extent("HeightFog", self.phase, self.extent)
 
     @property
     def g(self) -> Float[Array, ""]:

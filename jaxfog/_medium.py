@@ -114,6 +114,14 @@ class AbstractMedium(eqx.Module):
         """Scattering coefficient `sigma_s` at the point `p`, RGB, 1/scene unit."""
 
 
+def check_phase_and_extent(owner: str, phase, extent) -> None:
+    """A medium's `phase` is a phase function and its `extent` (static) a finite number > 0 (scene units)."""
+    if not isinstance(phase, AbstractPhaseFunction):
+        raise TypeError(f"{owner}.phase must be a phase function, got {type(phase).__name__}")
+    if not (isinstance(extent, (int, float)) and 0 < extent < float("inf")):
+        raise ValueError(f"{owner}.extent = {extent!r} must be a finite number > 0")
+
+
 class HomogeneousMedium(AbstractMedium):
     """A homogeneous medium.
 
@@ -148,10 +156,7 @@ class HomogeneousMedium(AbstractMedium):
     def __check_init__(self):
         check_range("HomogeneousMedium", "sigma_t", self.sigma_t, 0.0)
         check_range("HomogeneousMedium", "albedo", self.albedo, 0.0, 1.0)
-        if not isinstance(self.phase, AbstractPhaseFunction):
-            raise TypeError(f"HomogeneousMedium.phase must be a phase function, got {type(self.phase).__name__}")
-        if not (isinstance(self.extent, (int, float)) and 0 < self.extent < float("inf")):
-            raise ValueError(f"HomogeneousMedium.extent = {self.extent!r} must be a finite number > 0")
+        check_phase_and_extent("HomogeneousMedium", self.phase, self.extent)
 
     @property
     def sigma_s(self) -> Float[Array, "3"]:

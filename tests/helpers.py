@@ -3,7 +3,7 @@
 - Scene builders: `CameraSpec` (plain floats, for the renderer and float64 references), `FLOOR_CAMERA`, `make_floor`,
   `spot_fog` / `spot_fog_dict` (the shipped `data_synthetic/scenes/spot_fog.json`, optionally overridden).
 - Float64 references: `hg_np`, `spot_falloff_np`.
-- Reductions: `block_mean` (means over b x b pixel blocks).
+- Reductions: `block_mean` (means over b x b pixel blocks); finite differences: `fd_stencil`.
 - Statistics: `render_keys`, `mean_and_se`, `assert_statistically_equal` (an estimate against a reference).
 - Two programs: `assert_same_render_up_to_rounding` (two differently compiled programs computing the same image).
 
@@ -167,6 +167,27 @@ def spot_fog(*overrides: str, width: int | None = None, height: int | None = Non
     extra = [f"camera.width={width}"] * (width is not None) + [f"camera.height={height}"] * (height is not None)
     extra += [f"integrator.max_depth={max_depth}"] * (max_depth is not None)
     return jf.load_scene(SPOT_FOG, [*overrides, *extra]).scene
+
+
+def fd_stencil(theta0, steps, four_point):
+    """Parameter values for central finite differences around `theta0`: parameter p moves by `steps[p] * |theta0[p]|`,
+    with the 4-point stencil (error O(h^4)) where `four_point[p]`, else the 2-point one (O(h^2)). Returns
+    `(thetas (n, len(theta0)) float32, [(p, row indices into thetas, weights)])`: the derivative along p is
+    `weights @ values[rows]`."""
+    theta0 = np.asarray(theta0, np.float64)
+    thetas, plan = [], []
+    for p in range(theta0.size):
+        h = steps[p] * abs(theta0[p])
+        offsets, weights = ((-2, -1, 1, 2), (1, -8, 8, -1)) if four_point[p] else ((-1, 1), (-1, 1))
+        denom = 12.0 * h if four_point[p] else 2.0 * h
+        idx = []
+        for o in offsets:
+            t = theta0.copy()
+            t[p] += o * h
+            idx.append(len(thetas))
+            thetas.append(t)
+        plan.append((p, idx, np.asarray(weights, np.float64) / denom))
+    return np.asarray(thetas, np.float32), plan
 
 
 def block_mean(imgs, b: int) -> np.ndarray:

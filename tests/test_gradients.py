@@ -44,6 +44,8 @@ import pytest
 
 import jaxfog as jf
 
+from helpers import fd_stencil
+
 SCENES_DIR = Path(__file__).resolve().parents[1] / "data_synthetic" / "scenes"
 FAST_COMPILE = {"xla_backend_optimization_level": 0}
 RES = 32
@@ -143,21 +145,8 @@ def reverse_program(spp: int, estimator: str, blocks: tuple):
 
 
 def stencil(theta0):
-    """Parameter values for the finite differences: `(thetas (n, 5), list of (param, points, weights, h))`."""
-    theta0 = np.asarray(theta0, np.float64)
-    thetas, plan = [], []
-    for p in range(N_PARAMS):
-        h = STEPS[p] * abs(theta0[p])
-        offsets, weights = ((-2, -1, 1, 2), (1, -8, 8, -1)) if FOUR_POINT[p] else ((-1, 1), (-1, 1))
-        denom = 12.0 * h if FOUR_POINT[p] else 2.0 * h
-        idx = []
-        for o in offsets:
-            t = theta0.copy()
-            t[p] += o * h
-            idx.append(len(thetas))
-            thetas.append(t)
-        plan.append((p, idx, np.asarray(weights, np.float64) / denom))
-    return np.asarray(thetas, np.float32), plan
+    """Parameter values for the finite differences: `(thetas (n, 5), list of (param, points, weights))`."""
+    return fd_stencil(theta0, STEPS, FOUR_POINT)
 
 
 def apply_stencil(values, plan):

@@ -23,6 +23,7 @@ from jaxfog import _height as Hf
 from jaxfog._medium import Q_MIN
 
 from conftest import CameraSpec, hg_np, make_floor
+from helpers import fd_stencil
 
 f32 = jnp.float32
 UP = np.array([0.0, 1.0, 0.0])
@@ -589,28 +590,14 @@ def _reverse(spp, estimator):
     return jax.jit(jax.jacrev(lambda t, key: _red(_grad_render(t, key, spp, estimator))), compiler_options=FAST)
 
 
-def _fd_plan(theta0, rel=0.05):
-    pts, plan = [], []
-    for p in range(4):
-        h = rel * abs(theta0[p])
-        offs, wts = ((-2, -1, 1, 2), np.array([1, -8, 8, -1]) / (12 * h)) if p < 3 else ((-1, 1), np.array([-1, 1]) / (2 * h))
-        idx = []
-        for o in offs:
-            t = theta0.copy()
-            t[p] += o * h
-            idx.append(len(pts))
-            pts.append(t)
-        plan.append((idx, wts))
-    return np.asarray(pts, np.float32), plan
-
-
 @functools.cache
 def _fd_samples(spp, n_keys):
-    pts, plan = _fd_plan(THETA_G)
+    # steps of 5% of each value; the 4-point stencil for sigma_0, H, h_0, the 2-point one for the albedo
+    pts, plan = fd_stencil(THETA_G, steps=[0.05] * 4, four_point=[True, True, True, False])
     out = []
     for k in range(n_keys):
         vals = np.asarray(_primal(spp)(jnp.asarray(pts), jax.random.key(15_000 + k)), np.float64)
-        out.append(np.stack([w @ vals[idx] for idx, w in plan]))
+        out.append(np.stack([w @ vals[idx] for _, idx, w in plan]))
     return np.stack(out)  # (keys, 4 params, 3 reductions)
 
 
