@@ -143,6 +143,7 @@ class FitConfig:
     average_jacobians: int = 20
     max_step_se: float = 15.0
     approach_spp_factor: int = 4
+    approach_split_factor: int = 8
     precision: float = 0.01
     noise_weights: bool = True
 
@@ -315,6 +316,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     sizes = [v.target.size for v in views]
     K_avg = cfg.value_spp_factor
     K_app = max(1, min(cfg.approach_spp_factor, K_avg))
+    K_split = max(1, min(cfg.approach_split_factor, K_avg))
     state["noise"] = []  # per round: the per-element variance of one render at `spp` (`Problem.value`, `.offsets`)
 
     def noise_model():
@@ -381,19 +383,23 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
                                 max_steps=cfg.max_steps)
         steps = int(sol.stats["num_steps"])
         iterations += steps
+        # the solution as a plain host array: the solver's output carries the 2-device sharding of its program, and
+        # a render from sharded parameters is a new program for jit (measured: one more trace, lowering and cache
+        # load of a render program, ~1.2 s per fit)
+        y_sol = jnp.asarray(np.asarray(sol.value))
         if problem.on_eval is not None:  # the progress line: the loss at the solve's end (one cheap render)
             fn = problem.residuals if cfg.solver == "lm" else problem.cross_loss
-            out = np.asarray(fn(sol.value, args), np.float64)
-            problem.on_eval(sol.value, float(np.sum(out * out)) if out.ndim else float(out))
+            out = np.asarray(fn(y_sol, args), np.float64)
+            problem.on_eval(y_sol, float(np.sum(out * out)) if out.ndim else float(out))
         ok = sol.result == optx.RESULTS.successful
         if not ok:
             solve_ok = False
             messages.append(f"round {round_id}: solver did not converge ({optx.RESULTS[sol.result]}) in {steps} steps")
-        y_new = sol.value
+        y_new = y_sol
         state["normal"] = None
         state["gain"] = None
         if cfg.solver == "lm" and cfg.decorrelate:
-            y_new = unshrink(y0, sol.value, args, jax.random.fold_in(key_val, 1), factor)
+            y_new = unshrink(y0, y_sol, args, jax.random.fold_in(key_val, 1), factor)
         return y_new, args
 
     def unshrink(y0, y_lm, args, key3, factor):
@@ -432,6 +438,35 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
             + ", ".join(f"{x:.2f}" for x in w))
         return jnp.asarray(np.asarray(y0, np.float64) + step, dtype=jnp.asarray(y0).dtype)
 
+    def split_step(y0, round_id, wvec, K, reject):
+        """One Gauss-Newton step from `y0` from ONE pass at K x spp rendered as two halves with independent keys,
+        each half's Jacobian multiplying the other half's residual: `-A^-1 (Ja^T W eb + Jb^T W ea) / 2`, `A =
+        sym(Ja^T W Jb)`: unbiased (no Jacobian shares its residual's samples) and without `Var[J]` in `A`, at the
+        cost of one forward-mode pass. For the approach rounds after the first (K = `approach_split_factor`) and
+        the first averaging round (K_avg), which has no earlier Jacobian of its precision. Returns None where the
+        pass is not finite or `A` is not positive definite (the caller falls back to LM)."""
+        state["round"] = round_id
+        key, key_val = jax.random.split(jax.random.fold_in(base_key, round_id))
+        ref = _reference(views, from_unconstrained(names, y0))
+        args = (key, ref, None)
+        state["warm_up"] = False
+        ka, kb = jax.random.split(key_val)
+        e_a, u_a, J_a = problem.value_and_jacobian(y0, ka, ref, K // 2)
+        e_b, u_b, J_b = problem.value_and_jacobian(y0, kb, ref, K - K // 2)
+        if not all(np.all(np.isfinite(x)) for x in (e_a, e_b, J_a, J_b)):
+            return None
+        wa, wb = (K // 2) / K, (K - K // 2) / K
+        e, u_now, J_now = wa * e_a + wb * e_b, wa * u_a + wb * u_b, wa * J_a + wb * J_b
+        state["noise"].append(u_now)
+        state.setdefault("J_list", [])
+        Ja, Jb = J_a * wvec[:, None], J_b * wvec[:, None]
+        A = 0.5 * (Ja.T @ Jb + Jb.T @ Ja)
+        step = solve_spd(A, -0.5 * (Ja.T @ (e_b * wvec) + Jb.T @ (e_a * wvec)))
+        if step is None:
+            log("  (split-pass normal matrix not positive definite; an LM round instead)")
+            return None
+        return finish_step(y0, step, A, Ja, Jb, J_now, e, wvec, args, K, reject)
+
     def averaged_step(y0, round_id, wvec):
         """One Gauss-Newton step from `y0` with averaged Jacobians, for the averaging rounds. The noise of a
         one-key Jacobian `J1` enters an LM round's step multiplied by the distance to the solution, and the step gain
@@ -455,20 +490,21 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         # 32x the variance of this one's, multiplied the residual's noise in `Jbar^T W e` and made the rounds
         # wander 5-10 of their standard errors: measured on the main job, the same rounds' steps with an exact
         # Jacobian landed 2-3x closer to the truth.)
-        e, u_now, J_now = problem.value_and_jacobian(y0, key_val, ref, K_avg)
+        js = state.setdefault("J_list", [])  # (Jacobian, its spp factor): the approach's at 1, these at K_avg
+        good = [x for x in js[-cfg.average_jacobians:] if x[1] == K_avg]  # this phase's: the approach's are 32x noisier
         args = (key, ref, None)
+        state["warm_up"] = False
+        if not good and K_avg >= 2:
+            # the first averaging round has no earlier Jacobian of this precision (the approach's have 8-32x the
+            # variance: with them the main job's first averaged step went from (0.503, 0.594) to (0.465, 0.521)),
+            # and a step with a Jacobian from the residual's own samples is biased (measured: to (0.490, 0.570)):
+            # a split pass (`split_step`; before: the round rendered one pass and stayed put)
+            return split_step(y0, round_id, wvec, K_avg, reject=True)
+        e, u_now, J_now = problem.value_and_jacobian(y0, key_val, ref, K_avg)
         if not (np.all(np.isfinite(e)) and np.all(np.isfinite(J_now))):
             return None
         state["noise"].append(u_now)
-        js = state.setdefault("J_list", [])  # (Jacobian, its spp factor): the approach's at 1, these at K_avg
-        recent = js[-cfg.average_jacobians:]
-        good = [x for x in recent if x[1] == K_avg]  # this phase's only: the approach's at spp are 32x noisier
-        state["warm_up"] = not good
-        if not good:
-            # the first averaging round renders its pass and stays put: the approach's two Jacobians at spp are too
-            # noisy for a step of the averaging's precision (measured: the main job's first averaged step with them
-            # went from (0.503, 0.594) to (0.465, 0.521)), and a one-key step with this round's own Jacobian is
-            # biased, as the Jacobian shares the residual's samples (measured: (0.503, 0.594) to (0.490, 0.570))
+        if not good:  # K_avg 1: no split; stay put once and keep the Jacobian
             js.append((J_now, K_avg))
             state["warm_up"] = True
             state["step_len"] = 0.0
@@ -493,27 +529,33 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
             js.append((J_now, K_avg))
             state["warm_up"] = False
             return None
+        return finish_step(y0, step, A, Ja, Jb, J_now, e, wvec, args, K_avg, True)
+
+    def finish_step(y0, step, A, Ja, Jb, J_now, e, wvec, args, K, reject):
+        """The end of an averaged round: its step's length in its own standard errors, outlier rejection, the
+        Jacobian kept for the next rounds; returns `(y_new, args)`."""
+        nonlocal iterations
+        js = state["J_list"]
         state["normal"], state["pair"] = A, (Ja, Jb)
-        # the step's noise covariance: the target's and this round's value render's noise through the sandwich
         # the step's noise: this round's value render against the previous round's (the target's noise is common to
         # both and cancels in the difference of two rounds' estimates)
         u, _ = noise_model()
-        C_step = 2.0 * sandwich(Ja, Jb, A, u / K_avg * wvec ** 2)
+        C_step = 2.0 * sandwich(Ja, Jb, A, u / K * wvec ** 2)
         length = _mahalanobis(step, C_step)
-        if length > cfg.max_step_se and not state.get("rejected") and not state["warm_up"]:
+        if reject and length > cfg.max_step_se and not state.get("rejected") and not state["warm_up"]:
             log(f"  (averaged step of {length:.0f} standard errors rejected: an outlier render; the round stays put)")
             step = np.zeros_like(step)
             state["rejected"] = True
             state["noise"].pop()  # the outlier render: its variance and Jacobian stay out of the next rounds
             J_now = None
         else:
-            if length > cfg.max_step_se and not state["warm_up"]:
+            if reject and length > cfg.max_step_se and not state["warm_up"]:
                 # twice in a row, with two independent keys: far from the solution, not an outlier; go
                 log(f"  (averaged step of {length:.0f} standard errors taken: the second in a row)")
             state["rejected"] = False
         state["step_len"] = length
         if J_now is not None:
-            js.append((J_now, K_avg))
+            js.append((J_now, K))
         iterations += 1
         y_new = jnp.asarray(np.asarray(y0, np.float64) + step, dtype=jnp.asarray(y0).dtype)
         if problem.on_eval is not None:  # the progress line: the residual at the round's starting point
@@ -573,19 +615,32 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         rounds += 1
         y_prev = np.asarray(y, np.float64)
         stepped = None
-        if phase == "average" and use_avg:
+        if use_avg and (phase == "average" or (r >= 1 and K_split >= 2)):
             if cfg.noise_weights:  # from the earlier rounds' renders only: independent of this round's residual
                 wvec = gls_weights()
-            stepped = averaged_step(y, r, wvec)
+            if phase == "average":
+                stepped = averaged_step(y, r, wvec)
+            else:
+                stepped = split_step(y, r, wvec, K_split, reject=False)
+                if stepped is not None:  # trust region: no longer than the previous approach step (round 0's LM)
+                    d = np.asarray(stepped[0], np.float64) - y_prev
+                    n_d = float(np.linalg.norm(d))
+                    if n_d > state["trust"] > 0:
+                        log(f"  (approach step shortened to the previous step's length: {n_d:.3g} -> "
+                            f"{state['trust']:.3g} in the unconstrained parameters)")
+                        stepped = (jnp.asarray(y_prev + d * (state["trust"] / n_d), jnp.float32), stepped[1])
         if stepped is None:
             y, args = solve(y, r, K_app if phase == "approach" else K_avg)
             wv = ones
         else:
             y, args = stepped
             wv = wvec
+        if phase == "approach":
+            state["trust"] = float(np.linalg.norm(np.asarray(y, np.float64) - y_prev))
         theta = np.asarray([float(SPECS[n].from_u(y[i])) for i, n in enumerate(names)])
         thetas.append(theta)
-        C_T, C_R = covariances(wv, K_app if (phase == "approach" or stepped is None) else K_avg)
+        C_T, C_R = covariances(wv, K_avg if (phase == "average" and stepped is not None) else
+                               K_split if stepped is not None else K_app)
         se_round = (np.sqrt(np.abs(np.diag(to_params(C_T + C_R, y)))) if C_T is not None
                     else np.full(k, np.nan))
         d = np.asarray(y, np.float64) - y_prev

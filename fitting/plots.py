@@ -24,10 +24,10 @@ def _tonemap(x, scale):
 
 
 def plot_comparison(path, views, result, truth, spp=16, full=None) -> None:
-    """Per view: target | fit | fit - target. `full`: the same views at the target's full resolution (shown instead
-    of the fit resolution: people look at images), the difference pooled to the fit's resolution (what the fit
-    compared; pooling averages the render noise). `spp` 16: the full-resolution renders of the figure cost ~10 s CPU
-    of the main job at 64; the pooled difference still averages 16 x f^2 samples a block."""
+    """Per view: target | fit | fit - target. `full`: the same views at a finer resolution than the fit's (shown
+    instead of the fit resolution: people look at images; `fit.preview_downscale`: at most 64 px a side), the
+    difference pooled to the fit's resolution (what the fit compared; pooling averages the render noise). `spp` 16:
+    the pooled difference still averages 16 x f^2 samples a block."""
     import matplotlib
 
     matplotlib.use("Agg")
