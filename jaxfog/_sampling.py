@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
@@ -87,10 +88,16 @@ def hg_pdf(one_minus_cos: Float[Array, ""], g: Float[Array, ""]) -> Float[Array,
     `p = (1 - g)(1 + g) / (4 pi ((1 - g)^2 + 2 g (1 - cos))^(3/2))`: no cancellation near the forward peak. For
     g < 0 the same denominator is written `(1 + g)^2 - 2 g (1 + cos)` (a sum of two terms >= 0): the first form
     cancels at the backward peak and rounds to <= 0 for g -> -1 (NaN from the square root, e.g. g = -0.999).
+    The power is `rsqrt(denom)^3`, not `1 / (denom sqrt(denom))`: the derivative of the quotient squares its
+    divisor, which underflows to 0 at the peak for 1 - |g| <= 1e-7 (NaN gradients, `tests/test_phase.py`), while
+    `rsqrt^5` stays below float32's maximum for every float32 g in (-1, 1). The denominator is floored at 1e-15 (below
+    the smallest nonzero `(1 - |g|)^2` in float32, 3.6e-15), so g = +-1 itself gives 0 and finite gradients instead
+    of `0 x inf`.
     """
     one_plus_cos = jnp.maximum(2.0 - one_minus_cos, 0.0)
     denom = jnp.where(g >= 0, (1.0 - g) ** 2 + 2.0 * g * one_minus_cos, (1.0 + g) ** 2 - 2.0 * g * one_plus_cos)
-    return (1.0 - g) * (1.0 + g) * INV_4PI / (denom * jnp.sqrt(denom))
+    r = jax.lax.rsqrt(jnp.maximum(denom, 1e-15))
+    return (1.0 - g) * (1.0 + g) * INV_4PI * (r * r * r)
 
 
 # --------------------------------------------------------------------------------------------------------- Rayleigh

@@ -1,8 +1,8 @@
 """Hard cases: values and derivatives stay finite for extreme medium parameters and singular geometry, forward mode
 equals reverse mode there, and d/d sigma_t at sigma_t = 0 is correct.
 
-The grid (issue 3): g in {0, +-1e-7, +-0.5, +-0.99, +-0.999} x sigma_t in {0, 1e-6, 1e-2, 1, 30, 200} x albedo in
-{0, 1} (108 combinations), for each estimator. The scene (`SCENE`) is tiny but has every singular configuration:
+The grid (issue 3): g in {0, +-1e-7, +-0.5, +-0.99, +-0.999, +-(1 - 1.2e-7)} x sigma_t in {0, 1e-6, 1e-2, 1, 30, 200} x
+albedo in {0, 1} (132 combinations), for each estimator. The scene (`SCENE`) is tiny but has every singular configuration:
 
 - the upper half of the 4 x 4 image sees no surface: its rays escape (segments end at the medium's extent, 1000 units);
 - a point light sits just off the camera axis (camera rays pass within a few hundredths of it) and a spot light's cone
@@ -17,7 +17,7 @@ The grid (issue 3): g in {0, +-1e-7, +-0.5, +-0.99, +-0.999} x sigma_t in {0, 1e
 
 Everything is traced by `jaxfog._integrator.trace_path`, the integrator itself, on camera rays from `Camera.generate_ray`
 (2 samples per pixel with jittered pixel positions, as `render` does) plus the special rays, so that one compiled
-program per estimator (`vmap` over the 108 parameter combinations) gives values, the forward-mode Jacobian (3
+program per estimator (`vmap` over the 132 parameter combinations) gives values, the forward-mode Jacobian (3
 tangents) and reverse-mode gradients (2 cotangents) of all of them. The programs are compiled at XLA backend
 optimisation level 0: they are run for a few milliseconds, and compiling is what costs time here.
 """
@@ -38,11 +38,11 @@ from jaxfog._scene import pack
 
 FAST_COMPILE = {"xla_backend_optimization_level": 0}
 
-G_VALUES = (0.0, 1e-7, -1e-7, 0.5, -0.5, 0.99, -0.99, 0.999, -0.999)
+G_VALUES = (0.0, 1e-7, -1e-7, 0.5, -0.5, 0.99, -0.99, 0.999, -0.999, 0.9999999, -0.9999999)
 SIGMA_VALUES = (0.0, 1e-6, 1e-2, 1.0, 30.0, 200.0)
 ALBEDO_VALUES = (0.0, 1.0)
 GRID = np.stack(np.meshgrid(SIGMA_VALUES, ALBEDO_VALUES, G_VALUES, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
-"""(108, 3): rows (sigma_t, albedo, g)."""
+"""(132, 3): rows (sigma_t, albedo, g)."""
 
 N_BATCH = GRID.shape[0]
 SPP = 2
@@ -197,15 +197,21 @@ def test_forward_equals_reverse(estimator):
 
     One exception, measured: "reparam" at |g| >= 0.99 (sampled directions nearly reversed, positions moving like
     t / sigma_t in thin fog) has pathwise derivatives whose float32 rounding differs between the two modes by up to
-    ~2% (also between compiler settings); there the tolerance is 5e-2. Everywhere else the modes agree to ~1e-5."""
+    ~2% (also between compiler settings); there the tolerance is 5e-2. Everywhere else the modes agree to ~1e-5.
+
+    Left out: the rows at 1 - |g| = 1.2e-7 (the float32 edge of g, in the grid for the finiteness test above). There a
+    sampled direction is the incoming one reversed to float32 precision, and the two modes' roundings decide
+    differently where such a path goes next: measured, "detached" and "proposal" had 5 entries beyond rounding in
+    those rows (4 within the branch-flip bound; the worst at sigma_t = 30, derivatives ~1e-27), none elsewhere."""
     rtol = np.full((N_BATCH, 1), 1e-3)
     if estimator == "reparam":
         rtol[np.abs(GRID[:, 2]) >= 0.99] = 5e-2
+    compared = np.abs(GRID[:, 2]) <= 0.999
     for label, (values, jac, rev) in grid_results(estimator):
         fwd = jac[:, :N_CAMERA_RAYS].sum(axis=(1, 2))  # (B, 3)
         scale = np.abs(jac[:, :N_CAMERA_RAYS]).sum(axis=(1, 2))
         one_ray = np.abs(jac[:, :N_CAMERA_RAYS].sum(axis=2)).max(axis=1)  # (B, 3): largest single-ray derivative
-        err = np.abs(fwd - rev[:, 0])
+        err = np.where(compared[:, None], np.abs(fwd - rev[:, 0]), 0.0)
         ok = err <= rtol * scale + 1e-30
         flip = ~ok & (err <= rtol * scale + 2.0 * one_ray + 1e-30)
         worst = np.unravel_index(np.argmax(err / (scale + 1e-30)), err.shape)

@@ -211,3 +211,34 @@ def test_pdf_gradient_wrt_g_at_zero(g):
     dp = jax.vmap(jax.grad(hg_pdf, argnums=1), in_axes=(0, None))(jnp.asarray(omc), f32(g))
     assert np.all(np.isfinite(dp))
     np.testing.assert_allclose(np.asarray(dp), 3 * (1 - omc.astype(np.float64)) / (4 * np.pi), atol=1e-6)
+
+
+@pytest.mark.parametrize("g", [0.9999999, 0.99999994, -0.9999999, -0.99999994])
+def test_hg_pdf_value_and_gradient_at_the_float32_edge_of_g(g):
+    """1 - |g| of 6e-8 and 1.2e-7 (the two float32 values next to +-1; a fit's unconstrained g = tanh(y) reaches
+    them for |y| > 8): value and d p / d g at the peak, beside it and far from it agree with the float64 formula
+    (rel. 1e-4: the peak's value ~1e13 comes from (1 - g)^2 rounded once), and are finite. The gradient used to be
+    NaN at the peak (the derivative of `1 / (d sqrt d)` squares a divisor that underflows)."""
+    g32 = jnp.float32(g)
+    gd = float(g32)
+    peak = 0.0 if gd > 0 else 2.0
+    for omc in (peak, abs(peak - 1e-7), abs(peak - 1e-4), 1.0):
+        value = float(hg_pdf(jnp.float32(omc), g32))
+        dg = float(jax.grad(hg_pdf, argnums=1)(jnp.float32(omc), g32))
+        assert np.isfinite(value) and np.isfinite(dg), (omc, value, dg)
+        cos = 1.0 - float(np.float32(omc))
+        den = (1 - gd) ** 2 + 2 * gd * (1 - cos) if gd > 0 else (1 + gd) ** 2 - 2 * gd * (1 + cos)
+        ref = (1 - gd * gd) / (4 * np.pi * den ** 1.5)
+        dref = -2 * gd / (4 * np.pi * den ** 1.5) - 1.5 * (1 - gd * gd) * (2 * gd - 2 * cos) / (4 * np.pi * den ** 2.5)
+        assert value == pytest.approx(ref, rel=1e-4), (omc, value, ref)
+        assert dg == pytest.approx(dref, rel=1e-3), (omc, dg, dref)
+
+
+@pytest.mark.parametrize("g", [1.0, -1.0])
+def test_hg_pdf_finite_at_g_plus_minus_one(g):
+    """g = +-1 (outside the valid range, but where tanh of a large unconstrained fit parameter rounds): the value
+    0 away from the peak and finite everywhere, gradients finite (no 0 x inf)."""
+    for omc in (0.0, 1e-7, 1.0, 2.0):
+        value = float(hg_pdf(jnp.float32(omc), jnp.float32(g)))
+        grads = jax.grad(hg_pdf, argnums=(0, 1))(jnp.float32(omc), jnp.float32(g))
+        assert np.isfinite(value) and all(np.isfinite(float(x)) for x in grads), (omc, value, grads)
