@@ -122,7 +122,7 @@ def sampling_options(sampling: SamplingOptions | None = None, **fields) -> Sampl
     changed = {k: v for k, v in fields.items() if v is not None}
     if not changed:
         return sampling
-    values = {f: getattr(sampling, f) for f in ("estimator", "equiangular", "light_lobe", "distance_mix")}
+    values = {f: getattr(sampling, f) for f in ("estimator", "equiangular", "light_lobe", "distance_mix", "phase_lobe")}
     return SamplingOptions(**{**values, **changed})
 
 
