@@ -114,9 +114,13 @@ def stats(imgs: np.ndarray, exclude: int = 0, rings: bool = False) -> dict:
            "se_halves": [float(se(whole[: n // 2])[0]), float(se(whole[n // 2:])[0])]}
     if rings:
         ri = ring_index(h, w)
-        out["rings"] = [{"from_px": RING_EDGES[r], "to_px": RING_EDGES[r + 1], "pixels": int(((ri == r) * m).sum()),
-                         **(lambda v: {"mean": float(v.mean()), "se": float(se(v))})(masked_mean(imgs, (ri == r) * m)[:, 0])}
-                        for r in range(len(RING_EDGES) - 1) if ((ri == r) * m).sum()]
+        out["rings"] = []
+        for r in range(len(RING_EDGES) - 1):
+            mr = (ri == r) * m
+            if mr.sum():
+                v = masked_mean(imgs, mr)[:, 0]
+                out["rings"].append({"from_px": RING_EDGES[r], "to_px": RING_EDGES[r + 1], "pixels": int(mr.sum()),
+                                     "mean": float(v.mean()), "se": float(se(v))})
     if exclude:
         c = masked_mean(imgs, 1.0 - m)[:, 0]
         out["centre"] = {"pixels": int((1 - m).sum()), "mean": float(c.mean()), "se": float(se(c)),
@@ -174,7 +178,9 @@ def main(argv=None) -> int:
                "jaxfog": side(j), "mitsuba": side(m),
                "rel_diff": ((j["mean"] - m["mean"]) / m["mean"]).tolist(), "z": z.tolist(),
                "blocks_max_abs_z": float(np.abs(zb).max()), "blocks_mean_z2": float((zb ** 2).mean()),
-               "blocks_n": int(zb.size), "blocks_z_first_channel": [None if not np.isfinite(v) else round(float(v), 2) for v in z_full[:, 0]], "jaxfog_s": round(t1 - t0, 1), "mitsuba_s": round(t2 - t1, 1),
+               "blocks_n": int(zb.size),
+               "blocks_z_first_channel": [round(float(v), 2) if np.isfinite(v) else None for v in z_full[:, 0]],
+               "jaxfog_s": round(t1 - t0, 1), "mitsuba_s": round(t2 - t1, 1),
                "jaxfog_cpu_s": round(c1 - c0, 1), "mitsuba_cpu_s": round(c2 - c1, 1)}
         if rings:
             res["rings_z"] = [(a["mean"] - b["mean"]) / np.hypot(a["se"], b["se"])
@@ -183,9 +189,8 @@ def main(argv=None) -> int:
             a, b = j["centre"], m["centre"]
             res["centre_z"] = (a["mean"] - b["mean"]) / np.hypot(a["se"], b["se"])
         out["cases"][name] = res
-        print(name, json.dumps({k: res[k] for k in ("jaxfog", "mitsuba", "z", "blocks_max_abs_z", "blocks_mean_z2",
-                                                      "jaxfog_cpu_s", "mitsuba_cpu_s") + (("rings_z",) if rings else ())}),
-              flush=True)
+        keys = ("jaxfog", "mitsuba", "z", "blocks_max_abs_z", "blocks_mean_z2", "jaxfog_cpu_s", "mitsuba_cpu_s")
+        print(name, json.dumps({k: res[k] for k in keys + (("rings_z",) if rings else ())}), flush=True)
         with open(args.out + ".tmp", "w") as f:
             json.dump(out, f, indent=1)
         os.replace(args.out + ".tmp", args.out)

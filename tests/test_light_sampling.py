@@ -139,8 +139,8 @@ def test_variance_reduction_does_not_change_the_expected_image(stats, light):
 
 
 def _droplet_scene(diameter: float, phase=None):
-    """Floor in grey fog of droplets (`diameter` um; or the phase function `phase`) lit by a point light inside the view and a small area light
-    facing down (the lobe's density enters the area light's MIS weights), max_depth 4."""
+    """Floor in grey fog of droplets (`diameter` um; or the phase function `phase`) lit by a point light inside the
+    view and a small area light facing down (the lobe's density enters the area light's MIS weights), max_depth 4."""
     lights = (jf.PointLight((0.3, 0.9, -0.2), 4.0),
               jf.AreaLight((-0.6, 1.6, -0.4), (0.6, 0.0, 0.0), (0.0, 0.0, 0.4), 2.0))  # front face -y (down)
     return jf.Scene(camera=FLOOR_CAMERA.build(), shapes=(make_floor(),), lights=lights,
