@@ -63,6 +63,10 @@ class AbstractPhaseFunction(eqx.Module):
     """
 
     sampled_exactly: AbstractClassVar[bool]
+    sharp_forward_peak: ClassVar[bool] = False
+    """Whether the light-angle lobe should, by default, draw part of its directions from this phase function about
+    the direction to the light (`SamplingOptions.phase_lobe`): True for a peak too sharp for the lobe's angle
+    profile (the fog droplets), False (the default images unchanged) for the others."""
 
     @abc.abstractmethod
     def sample_polar(self, u: Float[Array, ""]) -> Polar:
@@ -256,6 +260,7 @@ class Droplet(AbstractPhaseFunction):
 
     diameter: Float[Array, ""] = eqx.field(converter=scalar)
     sampled_exactly: ClassVar[bool] = False
+    sharp_forward_peak: ClassVar[bool] = True
 
     def __check_init__(self):
         check_range("Droplet", "diameter", self.diameter, *DROPLET_DIAMETER_RANGE, lo_open=True)

@@ -122,7 +122,7 @@ def sampling_options(sampling: SamplingOptions | None = None, **fields) -> Sampl
     changed = {k: v for k, v in fields.items() if v is not None}
     if not changed:
         return sampling
-    values = {f: getattr(sampling, f) for f in ("estimator", "equiangular", "light_lobe", "distance_mix")}
+    values = {f: getattr(sampling, f) for f in ("estimator", "equiangular", "light_lobe", "distance_mix", "phase_lobe")}
     return SamplingOptions(**{**values, **changed})
 
 
@@ -175,9 +175,9 @@ def render(
 
     **Arguments:**
     - `key`: a JAX PRNG key; the same scene, key and spp give the same image.
-    - `sampling`: how paths are sampled, a `SamplingOptions` (estimator, equiangular, light_lobe, distance_mix;
-      default `SamplingOptions()`). The keywords `estimator`, `equiangular`, `light_lobe` and `distance_mix` are
-      shorthands that replace those fields (e.g. `render(scene, key, 64, estimator="reparam")`).
+    - `sampling`: how paths are sampled, a `SamplingOptions` (estimator, equiangular, light_lobe, distance_mix,
+      phase_lobe; default `SamplingOptions()`). The keywords `estimator`, `equiangular`, `light_lobe` and
+      `distance_mix` are shorthands that replace those fields (e.g. `render(scene, key, 64, estimator="reparam")`).
     - `proposal`: for `estimator="proposal"`, the fixed reference medium (of the scene medium's kind) that samples
       distances and directions: the image is then a smooth deterministic function of the parameters for a fixed key.
 

@@ -287,6 +287,8 @@ def test_truncated_exponential_pdf_integrates_to_one():
     (lambda: jf.Glass(int_ior=0.0), r"Glass\.int_ior"),
     (lambda: jf.SamplingOptions(estimator="nope"), r"SamplingOptions\.estimator"),
     (lambda: jf.SamplingOptions(light_lobe=1.0), r"SamplingOptions\.light_lobe"),
+    (lambda: jf.SamplingOptions(phase_lobe=1.5), r"SamplingOptions\.phase_lobe"),
+    (lambda: jf.SamplingOptions(phase_lobe=float("nan")), r"SamplingOptions\.phase_lobe"),
 ])
 def test_modules_refuse_bad_values_when_built(build, message):
     with pytest.raises(ValueError, match=message):
