@@ -7,7 +7,8 @@ For each view of the `droplet_8um` targets (and the narrow halo view at a few fi
 (`jax.jacfwd` of `jaxfog.render`, the "proposal" estimator with the truth as its fixed reference: the fit's own
 derivative), averaged over `--keys` keys of `--spp` samples each, with a central finite difference in d (same
 estimator, reference and key, d +- 0.25 µm) as a check; and each pixel's per-sample variance (the render's
-`variance=True`, pooled over the keys). Then, pooled to each fit resolution (box pooling as `fitting.core.pool`),
+`variance=True`, pooled over the keys). Then, pooled to each fit resolution (box pooling as `fitting.core.pool`; a
+fit pixel's per-sample variance is the mean of its target pixels' plus the spread of their means),
 the Fisher information of one channel (the fog is grey: the three channels carry the same noise)
 
     F = sum over fit pixels of j j^T / v,   j = (dI/dd, dI/dsigma_t),   v = per-sample variance / N
@@ -98,7 +99,11 @@ def measure(name, scene_name, overrides, spp, keys, seed0=30_000):
         if H // fsz < 8:
             continue
         Jp = np.stack([np.stack([pool(J[k, ..., i], fsz) for i in range(2)], -1) for k in range(keys)])
-        vp = pool(v, fsz)  # mean per-sample variance of the target pixels in a fit pixel
+        # per-sample variance of a fit pixel (a sample uniform over its f x f target pixels): the mean of their
+        # variances plus the spread of their means (total variance), the latter less its estimate's own noise
+        S = spp * keys
+        spread = pool(img * img, fsz) - pool(img, fsz) ** 2 - (1 - 1 / fsz ** 2) * pool(v, fsz) / S
+        vp = pool(v, fsz) + np.maximum(spread, 0.0)
         jm = Jp.mean(0)
         res = {}
         for label, N in (("fit_spp", FIT_SPP), ("target", TARGET_SPP * fsz * fsz)):
