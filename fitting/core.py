@@ -123,8 +123,8 @@ class FitConfig:
     coordinate (1 = a factor e in sigma_t; near the ends of a bounded range, where the coordinate's map to the
     parameter is flat, the linearised step is not to be trusted: measured, a droplet fit at d = 5.06 in (5, 50)
     stepped to 50 in one averaged round and stayed there, and an LM round with step gain 4 went from 9.5 to 5.3
-    for a truth of 8; the fits of docs/results/fit_models.md start within 0.85 of their truths in every coordinate but the diameter's,
-    1.4); `decorrelate`: LM residuals take their value at the reference from a second,
+    for a truth of 8; the fits of docs/results/fit_models.md start within 0.85 of their truths in every
+    coordinate but the diameter's, 1.4); `decorrelate`: LM residuals take their value at the reference from a second,
     independent key (`Problem.offsets`; off = the plain fixed-key residual, biased by the render's noise).
 
     The loop (docs/fitting.md): `burn_in` is the most approach rounds (LM, value render at `approach_spp_factor` x
