@@ -688,7 +688,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     #      estimate's uncertainty
     k1, k2 = jax.random.split(jax.random.fold_in(base_key, 7777))
     ref = _reference(views, from_unconstrained(names, y_hat))
-    spp_check = cfg.spp  # the programs of the rounds' Jacobian and LM-offset renders, not two new ones
+    # the two renders a, b at the fit's spp: the programs of the rounds' Jacobian and LM-offset renders, not new ones
     # The residual may also hold the estimate's own uncertainty (cov_hat, in the unconstrained coordinates): its
     # share per block is J_b cov_hat J_b^T, with J_b the Jacobian of the (pooled) render at the estimate.
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -701,7 +701,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     # the target, the residual (mean of the two renders - target) is distributed as the reference residual (mean of
     # the two renders - a third render at the target's samples per fit pixel, f^2 x the header's spp: one more
     # render per view, with key k3): the same noise, whatever its distribution. (Scaling (ia - ib)/2 by the
-    # Gaussian 1 + 2 spp_check / (target_spp f^2) instead reads 1.1-4.5x, median 2.4, for renders of the truth
+    # Gaussian 1 + 2 spp / (target_spp f^2) instead reads 1.1-4.5x, median 2.4, for renders of the truth
     # against the droplet halo target, whose pixels' noise is heavy-tailed and skewed at these spp; the reference
     # residual 0.8-1.5x, median 1.1: docs/results/fit_models.md.) The fit pixel's per-sample variance also holds the
     # sub-pixel variation, so the third render errs toward more noise than the pooled target's. A target without
