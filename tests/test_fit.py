@@ -123,3 +123,13 @@ def test_missing_files(files, capsys):
     assert "nope.json" in capsys.readouterr().err
     assert fit_main([str(target_path), "--out", str(tmp / "r.json")]) == 2
     assert "before any SCENE.json" in capsys.readouterr().err
+
+
+def test_trust_region_shortens_long_steps_along_their_direction():
+    from fitting.core import _trust_region
+
+    step = np.array([0.3, -5.0])
+    out = _trust_region(step, 2.0)
+    np.testing.assert_allclose(out, step * (2.0 / 5.0))  # the largest change is the trust region's, same direction
+    np.testing.assert_array_equal(_trust_region(np.array([0.3, -1.9]), 2.0), [0.3, -1.9])  # short: unchanged
+    np.testing.assert_array_equal(_trust_region(step, float("inf")), step)  # off
