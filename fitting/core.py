@@ -763,17 +763,30 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     # spp in its header: (ia - ib)/2 plus the target's own block estimate of its noise. One ratio per view (its
     # three channels pooled) and one per channel (the views pooled): a grey model on a chromatic target fits the
     # channels' mean and leaves a residual of opposite sign in red and blue, which a per-channel ratio shows.
+    # The third render has min(f^2 spp_T, REF_SPP_FACTOR spp) samples per fit pixel (not f^2 spp_T: 65,536 on the
+    # main job, 8.4 M paths, ~55 s of a 130-s run), and its squared residual is scaled by the ratio of the two noise
+    # levels, `(1 / (2 spp) + 1 / s_T) / (1 / (2 spp) + 1 / s_c)` (0.89 on the main job): the two renders a, b at
+    # spp dominate the residual's noise, so the reference keeps its shape (skew, tail) from them.
     k3 = jax.random.fold_in(base_key, 7778)
     vals_hat = from_unconstrained(names, y_hat)
-    c = [jaxfog.render(apply(v.scene, vals_hat), jax.random.fold_in(k3, i), v.target_spp * v.downscale ** 2,
-                       estimator="proposal", proposal=ref) if v.target_spp else None for i, v in enumerate(views)]
+    c, c_scale = [], []
+    for i, v in enumerate(views):
+        if not v.target_spp:
+            c.append(None)
+            c_scale.append(1.0)
+            continue
+        s_t = v.target_spp * v.downscale ** 2
+        s_c = max(2, min(s_t, REF_SPP_FACTOR * cfg.spp))
+        c.append(jaxfog.render(apply(v.scene, vals_hat), jax.random.fold_in(k3, i), s_c, estimator="proposal",
+                               proposal=ref, variance=True)[0])  # variance: the rounds' compiled program
+        c_scale.append((0.5 / cfg.spp + 1.0 / s_t) / (0.5 / cfg.spp + 1.0 / s_c))
     num_px, den_px = [], []
-    for v, ia, ib, ic, ja in zip(views, a, b, c, Ja):
+    for v, ia, ib, ic, ja, cs in zip(views, a, b, c, Ja, c_scale):
         ia, ib, t = np.asarray(ia, np.float64), np.asarray(ib, np.float64), np.asarray(v.target, np.float64)
         jb = np.stack([np.asarray(ja[..., i], np.float64) for i in range(len(names))], axis=-1)
         par = np.einsum("...i,ij,...j->...", jb, cov_hat, jb)
         if v.target_spp:
-            noise = (0.5 * (ia + ib) - np.asarray(ic, np.float64)) ** 2
+            noise = cs * (0.5 * (ia + ib) - np.asarray(ic, np.float64)) ** 2
         else:
             noise = ((ia - ib) / 2.0) ** 2
             if v.target_var is not None:
@@ -846,6 +859,11 @@ NOISE_ROUNDS = 4
 """The noise model's per-element render variance is the mean of the last this many rounds' estimates (each a
 render's own per-pixel sample variance at K x spp samples): the rounds sit near one point once the approach has
 ended, and more samples of a heavy-tailed pixel make its variance estimate less often too low."""
+
+REF_SPP_FACTOR = 16
+"""Samples per fit pixel of the model check's reference render, in multiples of the fit's spp (at most the
+target's): 16 makes its noise 1/8 of the two check renders' mean's, and at 8 x 8 px and spp >= 64 it is the rounds'
+compiled value-render program."""
 
 VAR_FLOOR = 0.1
 """Floor of an element's variance in the weights (`gls_weights`), relative to the median element: at most ~3x the
