@@ -72,6 +72,13 @@ CASES = {
 }
 
 
+def save_json(path: str, out: dict) -> None:
+    """Write `out` to `path` through a temporary file (a run stopped half-way leaves the previous file whole)."""
+    with open(path + ".tmp", "w") as f:
+        json.dump(out, f, indent=1)
+    os.replace(path + ".tmp", path)
+
+
 def render_mitsuba(path, spp, seed, over, integrator):
     """`jaxfog.render_mitsuba`, with the integrator's type replaced (`volpathmis` for chromatic media)."""
     from jaxfog._mitsuba import import_mitsuba
@@ -191,9 +198,7 @@ def main(argv=None) -> int:
         out["cases"][name] = res
         keys = ("jaxfog", "mitsuba", "z", "blocks_max_abs_z", "blocks_mean_z2", "jaxfog_cpu_s", "mitsuba_cpu_s")
         print(name, json.dumps({k: res[k] for k in keys + (("rings_z",) if rings else ())}), flush=True)
-        with open(args.out + ".tmp", "w") as f:
-            json.dump(out, f, indent=1)
-        os.replace(args.out + ".tmp", args.out)
+        save_json(args.out, out)
     return 0
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import platform
 import sys
@@ -26,7 +25,7 @@ import numpy as np
 import jaxfog
 
 sys.path.insert(0, os.path.dirname(__file__))
-from crosscheck_models import BACKLIT, DROPLET_8, SIDE, SIZE, pixel_mask  # noqa: E402
+from crosscheck_models import BACKLIT, DROPLET_8, SIDE, SIZE, pixel_mask, save_json  # noqa: E402
 
 CASES = {
     "droplet_side_d3": (SIDE, DROPLET_8 + ["integrator.max_depth=3"], 0),
@@ -80,9 +79,7 @@ def main(argv=None) -> int:
         print(f"{name:20s} variance ratio {res['variance_ratio']:.2f}, CPU ratio {res['cpu_ratio']:.2f}, "
               f"efficiency ratio {res['efficiency_ratio']:.2f}, z(0.5 - 0) {res['z']:+.2f}", flush=True)
         out["cases"][name] = res
-        with open(args.out + ".tmp", "w") as f:
-            json.dump(out, f, indent=1)
-        os.replace(args.out + ".tmp", args.out)
+        save_json(args.out, out)
     return 0
 
 
