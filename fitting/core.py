@@ -431,7 +431,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         state.setdefault("A_list", []).append(0.5 * (J1.T @ J3 + J3.T @ J1))
         A = np.mean(state["A_list"][-5:], axis=0)
         if np.any(np.linalg.eigvalsh(A) <= 0):
-            log(f"  (step not rescaled: the two-key normal matrix is not positive definite)")
+            log("  (step not rescaled: the two-key normal matrix is not positive definite)")
             return y_lm
         state["normal"], state["pair"] = A, (J1, J3)
         state["gain"] = np.eye(len(names))
@@ -488,7 +488,6 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         `A = sym(Jbar_a^T W Jbar_b)` (an estimate of `E[J]^T W E[J]` without the noise's `Var[J]`) and W the noise
         weights (`wvec`, squared). The fixed point: `E[J]^T W (E[I] - T) = 0`. Returns None where `A` is not
         positive definite or fewer than two earlier Jacobians exist (the caller falls back to LM)."""
-        nonlocal iterations
         state["round"] = round_id
         key, key_val = jax.random.split(jax.random.fold_in(base_key, round_id))
         ref = _reference(views, from_unconstrained(names, y0))
