@@ -315,7 +315,8 @@ def tail_report(values, label: str, log=print, peng_ks=()) -> dict:
         if k <= len(v) // 10:
             m, se, a = peng_mean(v, k)
             row["peng"][str(k)] = {"mean": m, "se": se, "alpha": a}
-            log(f"    Peng k {k}: mean {m:.5g} +- {se:.2g} (alpha {a:.2f}); plain mean {v.mean():.5g} +- {row['se']:.2g}")
+            log(f"    Peng k {k}: mean {m:.5g} +- {se:.2g} (alpha {a:.2f}); "
+                f"plain mean {v.mean():.5g} +- {row['se']:.2g}")
     log(f"{label:44s} n {len(v):8d}  Hill alpha " + " ".join(f"k{k}:{a:.2f}" for k, a in h.items())
         + f"  survival slope {row['survival_slope_1e-2_1e-4']:.2f}  largest share {row['largest_share']:.3g}")
     return row
@@ -374,7 +375,8 @@ def depth_limit(size: int, n_images: int, spp: int, depths=(32, 64, 128), key: i
     for d in (*depths, -1):
         m, se = _mean_se(imgs[d])
         out["means"][str(d)] = [float(m), float(se)]
-        log(f"  jaxfog depth {d:4d}: {m:.5g} +- {se:.2g} ({n_images} images, {out['seconds_per_image'][str(d)]:.1f} s each)")
+        log(f"  jaxfog depth {d:4d}: {m:.5g} +- {se:.2g} ({n_images} images, "
+            f"{out['seconds_per_image'][str(d)]:.1f} s each)")
     pairs = [(b, a) for a, b in zip(depths[:-1], depths[1:])] + [(-1, depths[-1])]
     ref = imgs[depths[-1]].mean()
     for b, a in pairs:

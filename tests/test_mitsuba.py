@@ -287,7 +287,8 @@ def test_dense_fog_with_an_area_light_unbiased_agrees_with_mitsuba(mi, tmp_path)
     m_j, m_m = ours.mean(), theirs.mean()
     se = np.sqrt(ours.var(ddof=1) / n + theirs.var(ddof=1) / n)
     z = (m_j - m_m) / se
-    print(f"area light, unbiased: jaxfog {m_j:.4g}, Mitsuba {m_m:.4g}, combined SE {se:.2g} ({se / m_m:.1%}), z {z:+.2f}")
+    print(f"area light, unbiased: jaxfog {m_j:.4g}, Mitsuba {m_m:.4g}, combined SE {se:.2g} ({se / m_m:.1%}), "
+          f"z {z:+.2f}")
     assert m_j > 0 and m_m > 0 and se < 0.1 * m_m, (m_j, m_m, se)
     assert abs(z) < 4, f"jaxfog {m_j:.4g}, Mitsuba {m_m:.4g}, combined SE {se:.2g}, z {z:.2f}"
 
