@@ -69,12 +69,24 @@ def bootstrap_ratio_ci(a, b, n_boot: int = 4000, seed: int = 0, level: float = 0
 
 def tail_summary(values) -> dict:
     """How heavy-tailed a set of independent per-image means is: the largest image's share of the sum, the median
-    over the mean, and the two halves' means (a heavy tail shows as halves that differ by more than their SE)."""
+    over the mean, the two halves' means (a heavy tail shows as halves that differ by more than their SE), Hill's
+    tail index from the top 2.5, 5 and 10%, Peng's mean (k = n / 20, `peng_mean`) and a one-sided 97.5% lower bound
+    of the mean valid whatever the tail (the mean of the values truncated at their 90th percentile minus 1.96 of its
+    SE: an upper bound needs a model of the tail; a lower one does not)."""
     v = np.asarray(values, np.float64)
     h = len(v) // 2
-    return {"largest_share": float(v.max() / v.sum()), "median_over_mean": float(np.median(v) / v.mean()),
-            "half_means": [float(v[:h].mean()), float(v[h:].mean())],
-            "half_ses": [float(v[:h].std(ddof=1) / np.sqrt(h)), float(v[h:].std(ddof=1) / np.sqrt(len(v) - h))]}
+    out = {"largest_share": float(v.max() / v.sum()), "median_over_mean": float(np.median(v) / v.mean()),
+           "half_means": [float(v[:h].mean()), float(v[h:].mean())],
+           "half_ses": [float(v[:h].std(ddof=1) / np.sqrt(h)), float(v[h:].std(ddof=1) / np.sqrt(len(v) - h))],
+           "hill_alpha": hill_alpha(v, (0.025, 0.05, 0.1))}
+    k = len(v) // 20
+    if k >= 10:
+        m, se, a = peng_mean(v, k)
+        out["peng"] = {"k": k, "mean": m, "se": se, "alpha": a}
+    # a lower confidence bound that needs no tail model: E[min(X, c)] <= E[X], and min(X, c) is bounded
+    t = np.minimum(v, np.quantile(v, 0.9))
+    out["lower_bound_975_trunc_q90"] = float(t.mean() - 1.96 * t.std(ddof=1) / np.sqrt(len(t)))
+    return out
 
 
 def compare_images(a_imgs, b_imgs, label: str, log=print, blocks: int = 4) -> dict:
@@ -97,10 +109,24 @@ def compare_images(a_imgs, b_imgs, label: str, log=print, blocks: int = 4) -> di
            "block_means_a": ba.tolist(), "block_means_b": bb.tolist(), "block_z": z.tolist(),
            "block_z_max": float(np.abs(z).max()), "block_mean_z2": float(np.mean(z**2)),
            "block_frac_z_gt_3": float(np.mean(np.abs(z) > 3)), "tail_a": tail_summary(a_m), "tail_b": tail_summary(b_m)}
+    pb = row["tail_b"].get("peng")
+    if pb is not None:  # a (plain mean, CLT SE) against b's heavy-tail-aware mean
+        r = ma / pb["mean"]
+        row["peng_b"] = {"ratio": r, "ratio_se": r * np.hypot(sa / ma, pb["se"] / pb["mean"]),
+                         "z": (ma - pb["mean"]) / np.hypot(sa, pb["se"])}
     log(f"{label:40s} {ma:.5g} +- {sa:.2g} ({len(a_m)} images) vs {mb:.5g} +- {sb:.2g} ({len(b_m)}): "
         f"rel. diff {100 * rel:+.1f}% +- {100 * rel_se:.1f}%, z {zm:+.2f}, ratio 95% bootstrap [{lo:.3f}, {hi:.3f}]; "
         f"{blocks}x{blocks} regions max |z| {row['block_z_max']:.2f}, mean z^2 {row['block_mean_z2']:.2f}")
     log("    region z: " + "; ".join(" ".join(f"{x:+.1f}" for x in r) for r in z))
+    for side, t in (("a", row["tail_a"]), ("b", row["tail_b"])):
+        p_ = t.get("peng")
+        hill = " ".join(f"k{k}:{x:.2f}" for k, x in t["hill_alpha"].items())
+        log(f"    {side}: Hill alpha of the image means {hill}"
+            + ("" if p_ is None else f"; Peng's mean (k {p_['k']}) {p_['mean']:.5g} +- {p_['se']:.2g}")
+            + f"; 97.5% lower bound (truncated at q90) {t['lower_bound_975_trunc_q90']:.5g}")
+    if pb is not None:
+        log(f"    a / Peng's mean of b: {row['peng_b']['ratio']:.3f} +- {row['peng_b']['ratio_se']:.3f}, "
+            f"z {row['peng_b']['z']:+.2f}")
     return row
 
 
@@ -209,28 +235,31 @@ def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp:
     return res
 
 
-def hill_alpha(values, ks=(10, 20, 50, 100, 200, 500, 1000, 2000, 5000)) -> dict:
-    """Hill's estimator of the tail index alpha (P(X > x) ~ x^-alpha) from the `k` largest of `values` (positive
-    values only), for each `k` that is at most a tenth of them: `1 / alpha_k = mean_i<k log(X_(i) / X_(k))`. A mean
-    has a finite variance only for alpha > 2; for 1 < alpha < 2 it converges, but neither the CLT nor SEs from the
-    sample spread apply. `values` of i.i.d. samples; SE of alpha_k ~ alpha_k / sqrt(k)."""
+def hill_alpha(values, fractions=(0.025, 0.05, 0.1, 0.2, 0.33)) -> dict:
+    """Hill's estimator of the tail index alpha (P(X > x) ~ x^-alpha) from the `k` largest of `values`, `k` = each
+    of `fractions` of the positive values (at least 10): `1 / alpha_k = mean_i<k log(X_(i) / X_(k))`, keyed by k.
+    A mean has a finite variance only for alpha > 2; for 1 < alpha < 2 it converges, but neither the CLT nor SEs from
+    the sample spread apply. `values` i.i.d.; the SE of alpha_k is ~ alpha_k / sqrt(k). In the dense fog most paths
+    carry nothing (they never reach the light's neighbourhood), so the tail is that of the positive values."""
     v = np.sort(np.asarray(values, np.float64).ravel())[::-1]
     v = v[v > 0]
     out = {}
-    for k in ks:
-        if k <= len(v) // 10:
+    for f in fractions:
+        k = int(f * len(v))
+        if k >= 10:
             out[str(k)] = float(1.0 / np.mean(np.log(v[:k] / v[k])))
     return out
 
 
-def survival_slope(values, top: float = 1e-2, bottom: float = 1e-5) -> float:
-    """-slope of log P(X > x) against log x, least squares over the survival range [bottom, top] of the positive
-    `values` (another tail-index estimate: the log-log survival plot's straight part)."""
+def survival_slope(values, top: float = 0.3, bottom_count: int = 10) -> float:
+    """-slope of log P(X > x | X > 0) against log x, least squares over the positive `values` whose survival lies
+    between `top` and `bottom_count` values (another tail-index estimate: the log-log survival plot's straight
+    part)."""
     v = np.sort(np.asarray(values, np.float64).ravel())[::-1]
     v = v[v > 0]
     n = len(v)
     surv = (np.arange(n) + 1) / n
-    m = (surv <= top) & (surv >= max(bottom, 10 / n))
+    m = (surv <= top) & (np.arange(n) + 1 >= bottom_count)
     if m.sum() < 5:
         return float("nan")
     return float(-np.polyfit(np.log(v[m]), np.log(surv[m]), 1)[0])
@@ -297,6 +326,7 @@ def per_path_values(scene, side: str, n_images: int, depth: int, size: int = 256
     else:
         import mitsuba as mi
 
+        mi.set_variant("scalar_rgb")  # the LLVM variants abort on this machine's libLLVM
         msc = mi.load_dict(jf.to_mitsuba(sf))
         one = lambda k: np.asarray(mi.render(msc, spp=1, seed=seed0 + k))[..., :3]  # noqa: E731
     imgs, _ = _cached_images(p, one, n_images, log, f"paths {tag} {side} depth {depth}")
@@ -308,24 +338,26 @@ def tail_report(values, label: str, log=print, peng_ks=()) -> dict:
     relative SD, the plain mean with its (CLT) SE, and `peng_mean` at each of `peng_ks`."""
     v = np.asarray(values, np.float64).ravel()
     h = hill_alpha(v)
-    row = {"n": len(v), "hill_alpha": h, "survival_slope_1e-2_1e-4": survival_slope(v, 1e-2, 1e-4),
+    row = {"n": len(v), "n_positive": int((v > 0).sum()), "hill_alpha": h, "survival_slope": survival_slope(v),
            "largest_share": float(v.max() / v.sum()), "rel_sd": float(v.std(ddof=1) / v.mean()),
            "mean": float(v.mean()), "se": float(v.std(ddof=1) / np.sqrt(len(v))), "peng": {}}
     for k in peng_ks:
-        if k <= len(v) // 10:
+        if 10 <= k < row["n_positive"]:
             m, se, a = peng_mean(v, k)
             row["peng"][str(k)] = {"mean": m, "se": se, "alpha": a}
             log(f"    Peng k {k}: mean {m:.5g} +- {se:.2g} (alpha {a:.2f}); "
                 f"plain mean {v.mean():.5g} +- {row['se']:.2g}")
     log(f"{label:44s} n {len(v):8d}  Hill alpha " + " ".join(f"k{k}:{a:.2f}" for k, a in h.items())
-        + f"  survival slope {row['survival_slope_1e-2_1e-4']:.2f}  largest share {row['largest_share']:.3g}")
+        + f"  survival slope {row['survival_slope']:.2f}  largest share {row['largest_share']:.3g}"
+        + f"  positive {row['n_positive']}")
     return row
 
 
-def tails(cache: str, n_path_images: int, log=print, sides=("jaxfog", "mitsuba")) -> dict:
+def tails(cache: str, n_path_images: int, n_spot_unbiased: int, log=print, sides=("jaxfog", "mitsuba")) -> dict:
     """Tail index of the single paths (1-spp images at 256 x 256, `per_path_values`) of spot_fog_dense and
     area_fog_dense, unbiased and at depth 32, on each side; and of the per-image means of the `dense` and `area`
-    parts' cached images (16 x 16 x 256 spp: 65,536 paths each)."""
+    parts' cached images (16 x 16 x 256 spp: 65,536 paths each). `n_path_images` images a case, `n_spot_unbiased`
+    for spot_fog_dense unbiased (where only ~1e-4 of the paths carry light)."""
     import glob
     import os
 
@@ -334,10 +366,11 @@ def tails(cache: str, n_path_images: int, log=print, sides=("jaxfog", "mitsuba")
         name = sc if isinstance(sc, str) else sc["name"]
         for side in sides:
             for depth in (-1, 32):
-                v = per_path_values(sc, side, n_path_images, depth, cache=cache, log=log)
-                n = len(v)
+                n_img = n_spot_unbiased if (name, depth) == ("spot_fog_dense", -1) else n_path_images
+                v = per_path_values(sc, side, n_img, depth, cache=cache, log=log)
+                npos = int((v > 0).sum())
                 out["paths"][f"{name}_{side}_d{depth}"] = tail_report(
-                    v, f"paths {name} {side} depth {depth}", log, peng_ks=(int(n**0.5), int(4 * n**0.5)))
+                    v, f"paths {name} {side} depth {depth}", log, peng_ks=(npos // 10, npos // 4))
     for f in sorted(glob.glob(os.path.join(cache, "*_16_*_spp256.npz"))):
         v = np.asarray(np.load(f)["images"], np.float64).mean(axis=(1, 2, 3))
         key = os.path.basename(f)[:-4]
@@ -417,6 +450,8 @@ def main(argv=None) -> int:
                    help="fixed depths of the limit part, increasing (default 32 64 128)")
     p.add_argument("--path-images", type=int, default=16,
                    help="1-spp 256 x 256 images per case for the single paths' tail index (default 16)")
+    p.add_argument("--spot-path-images", type=int, default=128,
+                   help="1-spp 256 x 256 images of spot_fog_dense unbiased for the tail index (default 128)")
     p.add_argument("--sides", nargs="+", choices=("jaxfog", "mitsuba"), default=["jaxfog", "mitsuba"],
                    help="render only these sides of the cross-check (with --cache, two processes can share it)")
     p.add_argument("--cache", default=None, help="folder for the cross-check's images (resumable; default none)")
@@ -469,7 +504,7 @@ def main(argv=None) -> int:
     if "tails" in args.parts:
         if not args.cache:
             p.error("--parts tails needs --cache (it reads the dense and area parts' images)")
-        t = tails(args.cache, args.path_images, sides=tuple(args.sides))
+        t = tails(args.cache, args.path_images, args.spot_path_images, sides=tuple(args.sides))
         if set(args.sides) != {"jaxfog", "mitsuba"}:
             print("rendered", args.sides, "only: nothing written")
             return 0
