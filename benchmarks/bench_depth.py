@@ -381,25 +381,27 @@ def tails(cache: str, n_path_images: int, n_spot_unbiased: int, log=print, sides
 
 
 def depth_limit(size: int, n_images: int, spp: int, depths=(32, 64, 128), key: int = 932, cache=None,
-                log=print) -> dict:
+                plain_images: int = 0, log=print) -> dict:
     """jaxfog alone on spot_fog_dense: fixed depths `depths` and `max_depth = -1`, all with the same keys
     (fold_in(key(key), k), `spp` each). A fixed depth D + d traces the same paths as D and adds their segments
     D+1 .. D+d, so each difference of two depths (paired over the images) is exactly the light beyond the shorter
     cut, with only that light's noise, and must shrink to 0; the unbiased render (the same paths until Russian
     roulette stops them, so correlated with the deep fixed depth) must equal the limit. Every estimator here is
-    jaxfog's, whose tail is lighter than Mitsuba's (`tails`)."""
+    jaxfog's, whose tail is lighter than Mitsuba's (`tails`). With `plain_images`, also that many unbiased images
+    without the light-seeking techniques (keys fold_in(key(key + 1), k)) against the default unbiased ones."""
     import os
 
     import jax
 
     import jaxfog as jf
 
-    imgs = {}
+    imgs, imgs_full = {}, {}
     for d in (*depths, -1):
         sc = load("spot_fog_dense", size, [f"integrator.max_depth={d}"]).scene
         p = None if cache is None else os.path.join(cache, f"limit_{size}_jaxfog_d{d}_k{key}_spp{spp}.npz")
         imgs[d], secs = _cached_images(p, lambda k: jf.render(sc, jax.random.fold_in(jax.random.key(key), k), spp),
                                        n_images, log, f"jaxfog depth {d} (key {key})")
+        imgs_full[d] = imgs[d]
         imgs[d] = np.asarray(imgs[d], np.float64).mean(axis=(1, 2, 3))
         imgs[f"secs_{d}"] = secs
     out = {"size": size, "images": n_images, "spp": spp, "key": key, "depths": list(depths), "means": {},
@@ -419,6 +421,17 @@ def depth_limit(size: int, n_images: int, spp: int, depths=(32, 64, 128), key: i
                                           "rel_se": float(se / ref), "z": float(m / se) if se > 0 else 0.0}
         log(f"  depth {b} - depth {a} (same paths): {m:.4g} +- {se:.2g} = {100 * m / ref:+.2f}% +- "
             f"{100 * se / ref:.2f}% of depth {depths[-1]}, z {m / se:+.2f}")
+    if plain_images:
+        # the unbiased render without jaxfog's light-seeking techniques (no equiangular sampling, no light-angle
+        # lobe, no equiangular vertices): next-event estimation from the free-flight vertices only, as in Mitsuba's
+        # volpath (but with the exact transmittance): the same expectation, a different (heavy-tailed) estimator
+        opts = jf.SamplingOptions(equiangular=False, light_lobe=0.0, distance_mix=0.0)
+        sc = load("spot_fog_dense", size, ["integrator.max_depth=-1"]).scene
+        p = None if cache is None else os.path.join(cache, f"plain_{size}_jaxfog_d-1_k{key + 1}_spp{spp}.npz")
+        im, secs = _cached_images(p, lambda k: jf.render(sc, jax.random.fold_in(jax.random.key(key + 1), k), spp,
+                                                         sampling=opts), plain_images, log, "jaxfog -1 plain")
+        out["plain_vs_default"] = compare_images(im, imgs_full[-1], "jaxfog -1 plain vs jaxfog -1 (default)", log)
+        out["plain_vs_default"]["seconds_per_image"] = float(np.nanmedian(secs))
     return out
 
 
@@ -448,6 +461,8 @@ def main(argv=None) -> int:
     p.add_argument("--limit-images", type=int, default=64, help="jaxfog images per depth of the limit part (64)")
     p.add_argument("--limit-depths", type=int, nargs="+", default=[32, 64, 128],
                    help="fixed depths of the limit part, increasing (default 32 64 128)")
+    p.add_argument("--plain-images", type=int, default=64,
+                   help="jaxfog unbiased images without equiangular sampling / light lobe in the limit part (64)")
     p.add_argument("--path-images", type=int, default=16,
                    help="1-spp 256 x 256 images per case for the single paths' tail index (default 16)")
     p.add_argument("--spot-path-images", type=int, default=128,
@@ -498,7 +513,7 @@ def main(argv=None) -> int:
         if args.cache:
             os.makedirs(args.cache, exist_ok=True)
         result["limit"] = depth_limit(args.dense_size, args.limit_images, args.dense_spp, tuple(args.limit_depths),
-                                      cache=args.cache)
+                                      cache=args.cache, plain_images=args.plain_images)
         result["runs"]["limit"] = {"date": datetime.date.today().isoformat(), "command": cmd,
                                    "machine": machine_info()}
     if "tails" in args.parts:
