@@ -432,6 +432,21 @@ def depth_limit(size: int, n_images: int, spp: int, depths=(32, 64, 128), key: i
                                                          sampling=opts), plain_images, log, "jaxfog -1 plain")
         out["plain_vs_default"] = compare_images(im, imgs_full[-1], "jaxfog -1 plain vs jaxfog -1 (default)", log)
         out["plain_vs_default"]["seconds_per_image"] = float(np.nanmedian(secs))
+        # and its light beyond depth 32: plain depths 32 and 64 with the same keys (paired), against the default's
+        pl = {}
+        for d in depths[:2]:
+            sc = load("spot_fog_dense", size, [f"integrator.max_depth={d}"]).scene
+            p = None if cache is None else os.path.join(cache, f"plain_{size}_jaxfog_d{d}_k{key + 1}_spp{spp}.npz")
+            im, _ = _cached_images(p, lambda k: jf.render(sc, jax.random.fold_in(jax.random.key(key + 1), k), spp,
+                                                          sampling=opts), n_images, log, f"jaxfog {d} plain")
+            pl[d] = np.asarray(im, np.float64).mean(axis=(1, 2, 3))
+        a, b = depths[:2]
+        m, se = _mean_se(pl[b] - pl[a])
+        out["plain_deep"] = {"depths": [a, b], "means": {str(d): list(map(float, _mean_se(pl[d]))) for d in pl},
+                             "diff": float(m), "diff_se": float(se), "rel": float(m / pl[a].mean()),
+                             "rel_se": float(se / pl[a].mean())}
+        log(f"  plain: depth {b} - depth {a} (same paths): {100 * m / pl[a].mean():+.1f}% +- "
+            f"{100 * se / pl[a].mean():.1f}% of depth {a}")
     return out
 
 
