@@ -78,7 +78,7 @@ def tail_summary(values) -> dict:
     out = {"largest_share": float(v.max() / v.sum()), "median_over_mean": float(np.median(v) / v.mean()),
            "half_means": [float(v[:h].mean()), float(v[h:].mean())],
            "half_ses": [float(v[:h].std(ddof=1) / np.sqrt(h)), float(v[h:].std(ddof=1) / np.sqrt(len(v) - h))],
-           "hill_alpha": hill_alpha(v, (0.025, 0.05, 0.1))}
+           "hill_alpha": hill_alpha(v, (), (0.025, 0.05, 0.1))}
     k = len(v) // 20
     if k >= 10:
         m, se, a = peng_mean(v, k)
@@ -235,18 +235,18 @@ def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp:
     return res
 
 
-def hill_alpha(values, fractions=(0.025, 0.05, 0.1, 0.2, 0.33)) -> dict:
-    """Hill's estimator of the tail index alpha (P(X > x) ~ x^-alpha) from the `k` largest of `values`, `k` = each
-    of `fractions` of the positive values (at least 10): `1 / alpha_k = mean_i<k log(X_(i) / X_(k))`, keyed by k.
-    A mean has a finite variance only for alpha > 2; for 1 < alpha < 2 it converges, but neither the CLT nor SEs from
-    the sample spread apply. `values` i.i.d.; the SE of alpha_k is ~ alpha_k / sqrt(k). In the dense fog most paths
-    carry nothing (they never reach the light's neighbourhood), so the tail is that of the positive values."""
+def hill_alpha(values, ks=(10, 30, 100, 300, 1000), fractions=()) -> dict:
+    """Hill's estimator of the tail index alpha (P(X > x) ~ x^-alpha) from the `k` largest of `values`, for each of
+    `ks` and each of `fractions` of the values (k >= 10 and below a third of the positive values), keyed by k:
+    `1 / alpha_k = mean_i<k log(X_(i) / X_(k))`. A mean has a finite variance only for alpha > 2; for 1 < alpha < 2
+    it converges, but neither the CLT nor SEs from the sample spread apply. `values` i.i.d.; the SE of alpha_k is
+    ~ alpha_k / sqrt(k), and a large k reaches into the body, where the positive path values of the dense fog span
+    many decades (transmittance e^(-3 r)): only the smallest k describe the tail."""
     v = np.sort(np.asarray(values, np.float64).ravel())[::-1]
     v = v[v > 0]
     out = {}
-    for f in fractions:
-        k = int(f * len(v))
-        if k >= 10:
+    for k in sorted({*ks, *(int(f * len(v)) for f in fractions)}):
+        if 10 <= k < len(v) / 3:
             out[str(k)] = float(1.0 / np.mean(np.log(v[:k] / v[k])))
     return out
 
@@ -340,6 +340,7 @@ def tail_report(values, label: str, log=print, peng_ks=()) -> dict:
     h = hill_alpha(v)
     row = {"n": len(v), "n_positive": int((v > 0).sum()), "hill_alpha": h, "survival_slope": survival_slope(v),
            "largest_share": float(v.max() / v.sum()), "rel_sd": float(v.std(ddof=1) / v.mean()),
+           "top10_share": float(np.sort(v)[-10:].sum() / v.sum()), "top_over_mean": float(v.max() / v.mean()),
            "mean": float(v.mean()), "se": float(v.std(ddof=1) / np.sqrt(len(v))), "peng": {}}
     for k in peng_ks:
         if 10 <= k < row["n_positive"]:
@@ -349,7 +350,7 @@ def tail_report(values, label: str, log=print, peng_ks=()) -> dict:
                 f"plain mean {v.mean():.5g} +- {row['se']:.2g}")
     log(f"{label:44s} n {len(v):8d}  Hill alpha " + " ".join(f"k{k}:{a:.2f}" for k, a in h.items())
         + f"  survival slope {row['survival_slope']:.2f}  largest share {row['largest_share']:.3g}"
-        + f"  positive {row['n_positive']}")
+        + f"  positive {row['n_positive']}  top 10 share {row['top10_share']:.3g}")
     return row
 
 
@@ -368,9 +369,8 @@ def tails(cache: str, n_path_images: int, n_spot_unbiased: int, log=print, sides
             for depth in (-1, 32):
                 n_img = n_spot_unbiased if (name, depth) == ("spot_fog_dense", -1) else n_path_images
                 v = per_path_values(sc, side, n_img, depth, cache=cache, log=log)
-                npos = int((v > 0).sum())
                 out["paths"][f"{name}_{side}_d{depth}"] = tail_report(
-                    v, f"paths {name} {side} depth {depth}", log, peng_ks=(npos // 10, npos // 4))
+                    v, f"paths {name} {side} depth {depth}", log)
     for f in sorted(glob.glob(os.path.join(cache, "*_16_*_spp256.npz"))):
         v = np.asarray(np.load(f)["images"], np.float64).mean(axis=(1, 2, 3))
         key = os.path.basename(f)[:-4]
