@@ -1,7 +1,8 @@
 """Paths of any length: cost of fixed depth 8 against unbounded depth (Russian roulette + path regeneration), and
 the dense fog rendered without bias against Mitsuba 3's unbounded `volpath`.
 
-    python -m benchmarks.bench_depth [--parts timing dense] [--size 128] [--cache DIR] [--out docs/results/unbounded]
+    python -m benchmarks.bench_depth [--parts timing dense area limit tails] [--size 128] [--cache DIR]
+        [--out docs/results/unbounded]
 
 1. `timing`: ms/spp of spot_fog_thin, spot_fog and spot_fog_dense at `max_depth` 8 and -1, interleaved in one
    process (A B A B ..., after compilation; median of the rounds and the median of the per-round ratios).
@@ -14,7 +15,15 @@ the dense fog rendered without bias against Mitsuba 3's unbounded `volpath`.
    (largest image's share, median / mean, the two halves' means). `--cache DIR` keeps the images (resumable and
    extendable; `--sides` lets two processes render the two sides). Needs the `compare` extra (skipped without it).
 
-The JSON keeps the part that did not run from an earlier run (`runs` says when and how each part ran).
+3. `area`: the same cross-check of `area_fog_dense` (spot_fog_dense lit by a rectangular area light: no
+   infinite-variance 1/r^2 weight on either side), `--area-images` unbiased and `--area-fixed-images` at the fixed
+   depth a side.
+4. `limit`: jaxfog alone on spot_fog_dense, fixed depths `--limit-depths` and -1 with the same keys (paired
+   differences: the light beyond each cut), and the unbiased render without the light-seeking techniques.
+5. `tails`: the tail index (Hill, survival slope) of single paths (1-spp 256 x 256 images) and of the cached
+   images' means, Peng's heavy-tail mean and a truncation lower bound, and a coverage check of Peng's interval.
+
+The JSON keeps the parts that did not run from an earlier run (`runs` says when and how each part ran).
 """
 
 from __future__ import annotations
