@@ -268,7 +268,7 @@ def test_dense_fog_with_an_area_light_unbiased_agrees_with_mitsuba(mi, tmp_path)
     place (`benchmarks.bench_depth.AREA_LIGHT`), 16 x 16, both unbiased (`max_depth = -1`, Russian roulette from
     vertex 5): the image means of 96 independent images x 256 spp a side agree within 4 combined SE. With the area
     light neither renderer has the infinite-variance 1/r^2 weight of next-event estimation toward a point light
-    (docs/results/unbounded: the image means' tail index is ~8-13 here, ~1.3 for Mitsuba with the spot), so the SE
+    (docs/results/unbounded: the image means' tail index is ~5-20 here, ~1.3-1.5 for Mitsuba with the spot), so the SE
     from the spread over the images is meaningful: per-image relative SD ~0.35-0.40 on both sides, so the combined
     SE is ~5.5% and the test fails for a difference of more than ~22% (the full run in docs/results/unbounded: 512
     images a side, +-2.1% each). One run: combined SE 5.2%, z -1.17; ~70 s on 2 busy cores."""
