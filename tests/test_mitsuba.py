@@ -248,18 +248,24 @@ def test_dense_fog_unbiased_and_fixed_depth_agree_with_mitsuba(mi):
     path = REPO / "data_synthetic" / "scenes" / "spot_fog_dense.json"
     for depth, n, spp in ((16, 32, 512), (-1, 32, 256)):
         over = ["camera.width=8", "camera.height=8", f"integrator.max_depth={depth}"]
-        scene = jf.load_scene(path, over).scene
-        ours = np.array([float(jf.render(scene, jax.random.fold_in(jax.random.key(77), k), spp).mean())
-                         for k in range(n)])
-        msc = mi.load_dict(jf.to_mitsuba(path, overrides=over))
-        theirs = np.array([float(np.asarray(mi.render(msc, spp=spp, seed=3000 + k), np.float64)[..., :3].mean())
-                           for k in range(n)])
-        m_j, m_m = ours.mean(), theirs.mean()
-        se = np.sqrt(ours.var(ddof=1) / n + theirs.var(ddof=1) / n)
-        z = (m_j - m_m) / se
+        m_j, m_m, se, z = _image_means_both(mi, path, over, n, spp, key=77, seed0=3000)
         print(f"depth {depth}: jaxfog {m_j:.4g}, Mitsuba {m_m:.4g}, combined SE {se:.2g} ({se / m_m:.0%}), z {z:+.2f}")
         assert m_j > 0 and m_m > 0 and np.isfinite(z), (depth, m_j, m_m)
         assert abs(z) < 4, f"depth {depth}: jaxfog {m_j:.4g}, Mitsuba {m_m:.4g}, combined SE {se:.2g}, z {z:.2f}"
+
+
+def _image_means_both(mi, path, over, n, spp, key, seed0):
+    """`n` independent images of `spp` a side (jaxfog keys `fold_in(key(key), k)`, Mitsuba seeds `seed0 + k`): the
+    two image means, their combined standard error (the spread over the images) and z = difference / SE."""
+    scene = jf.load_scene(path, over).scene
+    ours = np.array([float(jf.render(scene, jax.random.fold_in(jax.random.key(key), k), spp).mean())
+                     for k in range(n)])
+    msc = mi.load_dict(jf.to_mitsuba(path, overrides=over))
+    theirs = np.array([float(np.asarray(mi.render(msc, spp=spp, seed=seed0 + k), np.float64)[..., :3].mean())
+                       for k in range(n)])
+    m_j, m_m = ours.mean(), theirs.mean()
+    se = np.sqrt(ours.var(ddof=1) / n + theirs.var(ddof=1) / n)
+    return m_j, m_m, se, (m_j - m_m) / se
 
 
 @pytest.mark.slow
@@ -278,15 +284,7 @@ def test_dense_fog_with_an_area_light_unbiased_agrees_with_mitsuba(mi, tmp_path)
     path = tmp_path / "area_fog_dense.json"
     path.write_text(json.dumps(data))
     over = ["camera.width=16", "camera.height=16", "integrator.max_depth=-1"]
-    n, spp = 96, 256
-    scene = jf.load_scene(path, over).scene
-    ours = np.array([float(jf.render(scene, jax.random.fold_in(jax.random.key(55), k), spp).mean()) for k in range(n)])
-    msc = mi.load_dict(jf.to_mitsuba(path, overrides=over))
-    theirs = np.array([float(np.asarray(mi.render(msc, spp=spp, seed=4000 + k), np.float64)[..., :3].mean())
-                       for k in range(n)])
-    m_j, m_m = ours.mean(), theirs.mean()
-    se = np.sqrt(ours.var(ddof=1) / n + theirs.var(ddof=1) / n)
-    z = (m_j - m_m) / se
+    m_j, m_m, se, z = _image_means_both(mi, path, over, n=96, spp=256, key=55, seed0=4000)
     print(f"area light, unbiased: jaxfog {m_j:.4g}, Mitsuba {m_m:.4g}, combined SE {se:.2g} ({se / m_m:.1%}), "
           f"z {z:+.2f}")
     assert m_j > 0 and m_m > 0 and se < 0.1 * m_m, (m_j, m_m, se)
