@@ -371,7 +371,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         Ainv = np.linalg.inv(A)
         return Ainv @ B @ Ainv
 
-    def solve(y0, round_id, factor):
+    def solve(y0, round_id, factor, approach=False):
         nonlocal iterations, solve_ok
         state["round"] = round_id
         key = jax.random.fold_in(base_key, round_id)
@@ -400,7 +400,14 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
             out = np.asarray(fn(y_sol, args), np.float64)
             problem.on_eval(y_sol, float(np.sum(out * out)) if out.ndim else float(out))
         ok = sol.result == optx.RESULTS.successful
-        if not ok:
+        if not ok and approach:
+            # an approach round only moves the estimate toward the solution and the later rounds re-solve from
+            # there: its LM stopping at `max_steps` is noted, not a failure (measured: the 7-parameter chromatic fit
+            # reported failure for round 0's LM at 40 steps while every estimate ended within 0.3% / 0.0025 and
+            # within 1 standard error of the truth); the stopping rule and the checks judge the fit
+            messages.append(f"round {round_id} (approach): the LM solve stopped before converging "
+                            f"({optx.RESULTS[sol.result]}) after {steps} steps; the later rounds re-solved")
+        elif not ok:
             solve_ok = False
             messages.append(f"round {round_id}: solver did not converge ({optx.RESULTS[sol.result]}) in {steps} steps")
         y_new = y_sol
@@ -640,7 +647,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
                             f"{state['trust']:.3g} in the unconstrained parameters)")
                         stepped = (jnp.asarray(y_prev + d * (state["trust"] / n_d), jnp.float32), stepped[1])
         if stepped is None:
-            y, args = solve(y, r, K_app if phase == "approach" else K_avg)
+            y, args = solve(y, r, K_app if phase == "approach" else K_avg, approach=phase == "approach")
             wv = ones
         else:
             y, args = stepped
