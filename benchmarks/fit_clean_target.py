@@ -1,7 +1,7 @@
 """The main job's two views fitted against nearly noise-free targets: is the spread of the estimate over fit seeds
 the target's noise or the fit's own? (docs/results/fit_accuracy.md, "Where the seed-to-seed spread comes from")
 
-    PYTHONPATH=. python benchmarks/fit_clean_target.py [--seeds 0 1 2 3] [--long] [--cache DIR]
+    PYTHONPATH=. python benchmarks/fit_clean_target.py [--seeds 0 1 2 3] [--long] [--equal-weights] [--cache DIR]
 
 The target of each view (spot_fog, spot_fog_low at the fit's 8 x 8 px) is the mean of 8 "detached" renders of 32,768
 spp at the truth (keys 9000-9007; cached in `--cache` as .npy); each seed is one fit from the main job's start
@@ -42,6 +42,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     ap.add_argument("--long", action="store_true")
     ap.add_argument("--cache", default="/tmp/jaxfog_clean_target")
+    ap.add_argument("--equal-weights", action="store_true", help="noise_weights=False (no per-pixel GLS weights)")
     args = ap.parse_args()
     jaxfog.use_cpu_cores()
     from jaxfog._cache import use_compilation_cache
@@ -52,6 +53,8 @@ def main() -> None:
     os.makedirs(args.cache, exist_ok=True)
     views = clean_views(args.cache)
     extra = dict(precision=1e-6, repeats=7, max_rounds=18) if args.long else {}
+    if args.equal_weights:
+        extra["noise_weights"] = False
     for s in args.seeds:
         lines: list[str] = []
         r = fit_views(views, ["sigma_t", "g"], {"sigma_t": 0.25, "g": 0.3}, FitConfig(spp=256, seed=s, **extra),
