@@ -130,8 +130,13 @@ class FitConfig:
     The loop (docs/fitting.md): `burn_in` is the most approach rounds (LM, value render at `approach_spp_factor` x
     spp; the approach ends earlier when a step is within its own noise); then averaging rounds, at least
     `repeats + 1`, until the step is within its noise and the standard error is at most `precision` (relative
-    units) or limited by the target's noise. `noise_weights`: per-view weights from the noise model in the averaging
-    rounds (off by default)."""
+    units) or limited by the target's noise. `noise_weights`: per-pixel generalised-least-squares weights from the
+    noise model in the split and averaging rounds (off by default: measured on the main job over six fit seeds, they
+    doubled the estimate's spread and their standard errors covered the truth in 4 of 6 fits, against 6 of 6 with
+    equal weights; docs/fitting.md). `first_round`: "split" (default) makes round 0 a split-pass Gauss-Newton step
+    like the later approach rounds (its compiled program is theirs), "lm" an optimistix Levenberg-Marquardt solve
+    (value render at `approach_spp_factor` x spp; also the fallback of any round whose split pass is not finite or
+    whose normal matrix is not positive definite)."""
 
     spp: int = 8
     seed: int = 0
@@ -154,6 +159,13 @@ class FitConfig:
     approach_split_factor: int = 8
     precision: float = 0.01
     noise_weights: bool = True
+    first_round: str = "split"
+    weight_smoothing: int = 1
+    weight_power: float = 0.5
+
+    def __post_init__(self):
+        if self.first_round not in ("split", "lm"):
+            raise FitError(f"first_round must be 'split' or 'lm', got {self.first_round!r}")
 
 
 @dataclass
@@ -362,12 +374,14 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         return x
 
     def sandwich(Ja, Jb, A, var):
-        """Covariance `A^-1 sym(Ja^T diag(var) Jb) A^-1` of a step `-A^-1 Jbar^T e` whose residual e has per-element
-        variance `var` (two-key form: the Jacobians' own noise does not inflate it; negative eigenvalues, from that
-        noise, clipped to 0)."""
-        B = 0.5 * (Ja.T @ (var[:, None] * Jb) + Jb.T @ (var[:, None] * Ja))
-        w, V = np.linalg.eigh(B)
-        B = (V * np.maximum(w, 0.0)) @ V.T
+        """Covariance `A^-1 B A^-1` of a step `-A^-1 J^T e` whose residual e has per-element variance `var`, given
+        the Jacobians: `B = (Ja^T diag(var) Ja + Jb^T diag(var) Jb) / 2`, the mean of the two halves' forms
+        (positive semi-definite; for a split step `-(Ja^T eb + Jb^T ea) / 2` it is the exact covariance, for a step
+        with `(Ja + Jb) / 2` an upper bound). (Before: the two-key `sym(Ja^T diag(var) Jb)`, an unbiased estimate of
+        `E[J]^T diag(var) E[J]` but indefinite where the Jacobians are noisy; with its negative eigenvalues clipped it
+        came out singular, and a step along the clipped direction measured a few standard errors however long:
+        the main job's first averaging round, seed 4, went from g 0.56 to 0.04 at 3.3 of them.)"""
+        B = 0.5 * (Ja.T @ (var[:, None] * Ja) + Jb.T @ (var[:, None] * Jb))
         Ainv = np.linalg.inv(A)
         return Ainv @ B @ Ainv
 
@@ -555,9 +569,18 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         state["normal"], state["pair"] = A, (Ja, Jb)
         # the step's noise: this round's value render against the previous round's (the target's noise is common to
         # both and cancels in the difference of two rounds' estimates)
+        # (`sandwich`: given the Jacobians; the two-key form it replaced made a split approach step of the main job
+        # read 5e8 standard errors)
         u, _ = noise_model()
         C_step = 2.0 * sandwich(Ja, Jb, A, u / K * wvec ** 2)
         length = _mahalanobis(step, C_step)
+        if reject and state.get("C_R_prev") is not None:
+            # also in the previous round's noise (scaled to this round's samples): where this round's normal matrix
+            # is nearly singular (two noisy Jacobians), its own C_step is as inflated as its step, and the length in
+            # it stays small (measured: the main job's first averaging round, seed 4, went from g 0.56 to 0.04 as a
+            # step of 3.3 of its own standard errors, 53 of the previous round's)
+            C_prev, K_prev = state["C_R_prev"]
+            length = max(length, _mahalanobis(step, 2.0 * C_prev * (K_prev / K)))
         if reject and length > cfg.max_step_se and not state.get("rejected") and not state["warm_up"]:
             log(f"  (averaged step of {length:.0f} standard errors rejected: an outlier render; the round stays put)")
             step = np.zeros_like(step)
@@ -590,11 +613,18 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         heavy-tailed pixel's variance is underestimated when no firefly was drawn). Normalised to mean square 1."""
         u, s2_T = noise_model()
         tot = s2_T + u / K_avg
+        if cfg.weight_smoothing > 0:  # each view's variances averaged over (2r+1)^2 neighbouring pixels
+            parts, at = [], 0
+            for v in views:
+                nv = v.target.size
+                parts.append(box_mean(tot[at:at + nv].reshape(v.target.shape), cfg.weight_smoothing).ravel())
+                at += nv
+            tot = np.concatenate(parts)
         pos = tot[np.isfinite(tot) & (tot > 0)]
         if pos.size == 0:
             return ones
         tot = np.where(np.isfinite(tot), np.maximum(tot, VAR_FLOOR * float(np.median(pos))), np.inf)
-        w = 1.0 / np.sqrt(tot)
+        w = tot ** (-0.5 * cfg.weight_power)
         return w / math.sqrt(np.mean(w ** 2))
 
     def covariances(wvec, K):
@@ -632,14 +662,15 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         rounds += 1
         y_prev = np.asarray(y, np.float64)
         stepped = None
-        if use_avg and (phase == "average" or (r >= 1 and K_split >= 2)):
-            if cfg.noise_weights:  # from the earlier rounds' renders only: independent of this round's residual
-                wvec = gls_weights()
+        if use_avg and (phase == "average" or (K_split >= 2 and cfg.first_round == "split") or
+                        (r >= 1 and K_split >= 2)):
+            if cfg.noise_weights and state["noise"]:  # from the earlier rounds' renders only: independent of
+                wvec = gls_weights()                   # this round's residual (round 0: equal weights)
             if phase == "average":
                 stepped = averaged_step(y, r, wvec)
             else:
                 stepped = split_step(y, r, wvec, K_split, reject=False)
-                if stepped is not None:  # trust region: no longer than the previous approach step (round 0's LM)
+                if stepped is not None and r >= 1:  # trust region: no longer than the previous approach step
                     d = np.asarray(stepped[0], np.float64) - y_prev
                     n_d = float(np.linalg.norm(d))
                     if n_d > state["trust"] > 0:
@@ -656,8 +687,10 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
             state["trust"] = float(np.linalg.norm(np.asarray(y, np.float64) - y_prev))
         theta = np.asarray([float(SPECS[n].from_u(y[i])) for i, n in enumerate(names)])
         thetas.append(theta)
-        C_T, C_R = covariances(wv, K_avg if (phase == "average" and stepped is not None) else
-                               K_split if stepped is not None else K_app)
+        K_round = K_avg if (phase == "average" and stepped is not None) else K_split if stepped is not None else K_app
+        C_T, C_R = covariances(wv, K_round)
+        if C_R is not None and np.all(np.isfinite(C_R)):
+            state["C_R_prev"] = (C_R, K_round)
         se_round = (np.sqrt(np.abs(np.diag(to_params(C_T + C_R, y)))) if C_T is not None
                     else np.full(k, np.nan))
         d = np.asarray(y, np.float64) - y_prev
@@ -680,7 +713,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
                 # Jacobians in the average made the Gauss-Newton steps over- and undershoot (measured: averaging
                 # rounds 5-9 standard errors apart, against 2-3 with only the last approach round's pair kept)
                 state["J_list"] = state.get("J_list", [])[-2:]
-                if not use_avg and cfg.noise_weights:
+                if not use_avg:
                     averaging.append(np.asarray(y, np.float64))
             continue
         if stepped is not None and (state.get("rejected") or state.get("warm_up")):
@@ -749,15 +782,24 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     #      estimate's uncertainty
     k1, k2 = jax.random.split(jax.random.fold_in(base_key, 7777))
     ref = _reference(views, from_unconstrained(names, y_hat))
-    # the two renders a, b at the fit's spp: the programs of the rounds' Jacobian and LM-offset renders, not new ones
     # The residual may also hold the estimate's own uncertainty (cov_hat, in the unconstrained coordinates): its
     # share per block is J_b cov_hat J_b^T, with J_b the Jacobian of the (pooled) render at the estimate.
     with np.errstate(invalid="ignore", divide="ignore"):
         corr0 = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)) + 1e-300)
     cov_hat = np.where(np.isfinite(cov_y), cov_y, 0.0)  # unknown uncertainty: the check uses the noise alone
-    render_a = lambda yy: (lambda im: (im, im))(problem.images(yy, k1, ref))
-    Ja, a = jax.jacfwd(render_a, has_aux=True)(y_hat)
+    # a, b: plain renders at the fit's spp (the brightness check's program). Their noise, not the estimate's error,
+    # must dominate the residual, so the check does not fail an estimate a few of its standard errors off (with a, b
+    # at 4x spp, measured on the main job: 2.2x for an estimate 1.5-2 standard errors off). The estimate's share
+    # of the residual, J cov J^T, takes the last round's Jacobian (its own K_avg x spp pass near the estimate).
+    a = problem.images(y_hat, k1, ref)
     b = problem.images(y_hat, k2, ref)
+    J_last = state["J_list"][-1][0] if state.get("J_list") else None  # unweighted, scaled like `residuals`
+    Ja, at = [], 0
+    for v, s in zip(views, problem.scales):  # back from the scaled, flattened residual Jacobian to image units
+        nv = v.target.size
+        Ja.append(np.zeros(v.target.shape + (k,)) if J_last is None or J_last.shape[0] != problem.n else
+                  J_last[at:at + nv].reshape(v.target.shape + (k,)) * s * math.sqrt(problem.n))
+        at += nv
     # Robust to heavy-tailed (firefly) noise: ratios of medians of squared pixel residuals. For a model that explains
     # the target, the residual (mean of the two renders - target) is distributed as the reference residual (mean of
     # the two renders - a third render at the target's samples per fit pixel, f^2 x the header's spp: one more
@@ -769,23 +811,23 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
     # spp in its header: (ia - ib)/2 plus the target's own block estimate of its noise. One ratio per view (its
     # three channels pooled) and one per channel (the views pooled): a grey model on a chromatic target fits the
     # channels' mean and leaves a residual of opposite sign in red and blue, which a per-channel ratio shows.
-    # The third render has min(f^2 spp_T, REF_SPP_FACTOR spp) samples per fit pixel (not f^2 spp_T: 65,536 on the
+    # The third render has REF_SPP_FACTOR spp samples per fit pixel (not f^2 spp_T: 65,536 on the
     # main job, 8.4 M paths, ~55 s of a 130-s run), and its squared residual is scaled by the ratio of the two noise
     # levels, `(1 / (2 spp) + 1 / s_T) / (1 / (2 spp) + 1 / s_c)` (0.89 on the main job): the two renders a, b at
     # spp dominate the residual's noise, so the reference keeps its shape (skew, tail) from them.
     k3 = jax.random.fold_in(base_key, 7778)
-    vals_hat = from_unconstrained(names, y_hat)
-    c, c_scale = [], []
-    for i, v in enumerate(views):
-        if not v.target_spp:
-            c.append(None)
-            c_scale.append(1.0)
-            continue
-        s_t = v.target_spp * v.downscale ** 2
-        s_c = max(2, min(s_t, REF_SPP_FACTOR * cfg.spp))
-        c.append(jaxfog.render(apply(v.scene, vals_hat), jax.random.fold_in(k3, i), s_c, estimator="proposal",
-                               proposal=ref, variance=True)[0])  # variance: the rounds' compiled program
-        c_scale.append((0.5 / cfg.spp + 1.0 / s_t) / (0.5 / cfg.spp + 1.0 / s_c))
+    c, c_scale = [None] * len(views), [1.0] * len(views)
+    if any(v.target_spp for v in views):
+        # the reference render at REF_SPP_FACTOR x spp: the mean of that many renders at spp with independent keys
+        # (the program of a and b, not one more compiled program; the mean of independent renders is the render at
+        # their total samples)
+        s_c = REF_SPP_FACTOR * cfg.spp
+        parts = [problem.images(y_hat, jax.random.fold_in(k3, j), ref) for j in range(REF_SPP_FACTOR)]
+        for i, v in enumerate(views):
+            if v.target_spp:
+                s_t = v.target_spp * v.downscale ** 2
+                c[i] = np.mean([np.asarray(p[i], np.float64) for p in parts], axis=0)
+                c_scale[i] = (0.5 / cfg.spp + 1.0 / s_t) / (0.5 / cfg.spp + 1.0 / s_c)
     num_px, den_px = [], []
     for v, ia, ib, ic, ja, cs in zip(views, a, b, c, Ja, c_scale):
         ia, ib, t = np.asarray(ia, np.float64), np.asarray(ib, np.float64), np.asarray(v.target, np.float64)
@@ -866,14 +908,35 @@ NOISE_ROUNDS = 4
 render's own per-pixel sample variance at K x spp samples): the rounds sit near one point once the approach has
 ended, and more samples of a heavy-tailed pixel make its variance estimate less often too low."""
 
-REF_SPP_FACTOR = 16
-"""Samples per fit pixel of the model check's reference render, in multiples of the fit's spp (at most the
-target's): 16 makes its noise 1/8 of the two check renders' mean's, and at 8 x 8 px and spp >= 64 it is the rounds'
-compiled value-render program."""
+REF_SPP_FACTOR = 8
+"""Samples per fit pixel of the model check's reference render, in multiples of the fit's spp: 8 makes its noise
+variance 1/4 of the two check renders' mean's (the reference residual's squared scale `c_scale` is then 0.8 on the
+main job); it is rendered as that many renders at spp (the check renders' compiled program)."""
 
 VAR_FLOOR = 0.1
 """Floor of an element's variance in the weights (`gls_weights`), relative to the median element: at most ~3x the
 median weight."""
+
+
+def box_mean(img: np.ndarray, r: int) -> np.ndarray:
+    """Mean of `img` (`(H, W, C)`) over the `(2r+1) x (2r+1)` pixels around each pixel, per channel; at the border
+    over the pixels that exist (no padding values enter). A non-finite value stays as it is and out of its
+    neighbours' means."""
+    x = np.asarray(img, np.float64)
+    if r <= 0:
+        return x
+    H, W = x.shape[:2]
+    ok = np.isfinite(x)
+    val = np.where(ok, x, 0.0)
+    tot = np.zeros_like(val)
+    cnt = np.zeros_like(val)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            ys, yd = slice(max(dy, 0), H + min(dy, 0)), slice(max(-dy, 0), H + min(-dy, 0))
+            xs, xd = slice(max(dx, 0), W + min(dx, 0)), slice(max(-dx, 0), W + min(-dx, 0))
+            tot[yd, xd] += val[ys, xs]
+            cnt[yd, xd] += ok[ys, xs]
+    return np.where(ok, tot / np.maximum(cnt, 1), x)
 
 
 def _trust_region(step, max_du: float, log: Callable = lambda *_: None) -> np.ndarray:

@@ -179,6 +179,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", choices=["averaged", "lm"], default="averaged",
                    help="rounds after the burn-in: one Gauss-Newton step with Jacobians averaged over rounds "
                         "(default), or an LM solve with step gain as in the burn-in")
+    p.add_argument("--first-round", choices=["split", "lm"], default="split",
+                   help="round 0: a split-pass Gauss-Newton step like the later approach rounds (default), or an "
+                        "optimistix Levenberg-Marquardt solve (for starts far from the solution)")
     p.add_argument("--residuals", choices=["decorrelated", "plain"], default="decorrelated",
                    help="LM residuals: value at the reference from an independent key (default), or plain fixed-key "
                         "residuals (biased toward parameters with less render noise; for comparison)")
@@ -262,7 +265,7 @@ def _run(args) -> int:
     if args.steps == "lm":
         extra["average_jacobians"] = 0
     cfg = FitConfig(spp=args.spp, seed=args.seed, solver=args.solver, max_rounds=args.rounds, repeats=args.repeats,
-                    decorrelate=args.residuals == "decorrelated", **extra)
+                    decorrelate=args.residuals == "decorrelated", first_round=args.first_round, **extra)
     print(f"fitting {', '.join(names)} to {len(views)} target(s) at "
           f"{views[0].scene.camera.width}x{views[0].scene.camera.height} px, {args.spp} spp, solver {args.solver}")
     log = (lambda *_: None) if args.quiet else print

@@ -13,7 +13,7 @@ import jaxfog
 from jaxfog._scene_io import scene_from_dict
 from fitting.core import FitConfig, fit_views, make_view
 from fitting.fit import main as fit_main
-from fitting.params import apply
+from fitting.params import FitError, apply
 
 # A small backlit scene: a point light in the fog in front of the camera, seen at scattering angles from 0 to ~60
 # degrees (its halo pins g), and a lit floor (pins sigma_t through its extinction). 16 x 16 px, single scattering.
@@ -133,3 +133,14 @@ def test_trust_region_shortens_long_steps_along_their_direction():
     np.testing.assert_allclose(out, step * (2.0 / 5.0))  # the largest change is the trust region's, same direction
     np.testing.assert_array_equal(_trust_region(np.array([0.3, -1.9]), 2.0), [0.3, -1.9])  # short: unchanged
     np.testing.assert_array_equal(_trust_region(step, float("inf")), step)  # off
+
+
+def test_first_round_is_checked_and_lm_still_fits(target):
+    with pytest.raises(FitError, match="first_round"):
+        FitConfig(first_round="newton")
+    # round 0 as an optimistix LM solve (the option, and the fallback of every split round) still recovers the truth
+    res = _fit(target, {"sigma_t": 0.45, "g": 0.35}, first_round="lm")
+    assert res.success, res.messages
+    for n, true in TRUTH.items():
+        tol = 4.0 * res.uncertainty[n]["se"] * np.sqrt(1 + 1 / 16)
+        assert abs(res.params[n] - true) < tol, (n, res.params[n], true, tol)
