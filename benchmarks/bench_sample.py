@@ -1,7 +1,7 @@
 """The cost of one path sample in the two programs that matter, and A/B comparisons of two source trees (issue 17).
 
     python -m benchmarks.bench_sample [--case plain|jvp|both] [--reps N]                 # this tree, one process
-    python -m benchmarks.bench_sample --ab TREE_A TREE_B [--pairs N] [--case ...] [--out DIR]
+    python -m benchmarks.bench_sample --ab TREE_A TREE_B [--reps N] [--case ...] [--label NAME] [--out DIR]
 
 Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line tools and the fit run):
 - `plain`: `render(spot_fog, key, 16)` at 128 x 128, max_depth 8 (the defaults).
@@ -9,12 +9,13 @@ Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line 
   medium at the same values>, variance=True)` of spot_fog downscaled to 8 x 8 px (the camera's fov kept), 2048 spp
   (the shape of `fitting.core.Problem.value_and_jacobian`).
 
-One process compiles each case once (the first call, reported apart), then times `--reps` calls and prints one JSON
-line per case: the median and all times, in us per path (one path = one sample of one pixel). With `--ab`, processes
-of tree A and tree B (each a source tree holding `jaxfog/`, put first on PYTHONPATH) alternate A B A B ... `--pairs`
-times; each pair gives the ratio B/A of the in-process medians (B faster: < 1). Only ratios inside one run mean
-anything on a shared machine. Prints a table and writes `sample_ab.json` to `--out` (default
-docs/results/bench/sample in the repository).
+Each case is compiled once (the first call, reported apart), then timed `--reps` times, in us per path (one path =
+one sample of one pixel), wall-clock and process CPU time (all threads; steadier than wall time on a shared machine).
+With `--ab`, the packages `jaxfog/` of two source trees (e.g. a copy of the last commit and the working tree) are
+imported into one process (as `jaxfog_a`, `jaxfog_b`), both compiled, and their calls interleaved A B, B A, A B, ...:
+each pair gives a ratio B/A (B faster: < 1), printed as median [min, max] over the pairs, so a drift of the machine's
+speed hits both sides alike. Only ratios inside one run mean anything on a shared machine. Prints a table and
+writes `sample_ab[_LABEL].json` to `--out` (default docs/results/bench/sample in the repository).
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -34,12 +34,11 @@ SCENE = REPO / "data_synthetic" / "scenes" / "spot_fog.json"
 CASES = ("plain", "jvp")
 
 
-def _build(case: str):
-    """`(fn, n_paths)`: a no-argument callable that runs the case once and blocks, and the paths it traces."""
+def _build(jf, case: str):
+    """`(fn, n_paths)`: a no-argument callable that runs the case once with the package `jf` and blocks, and the
+    paths it traces."""
     import jax
     import jax.numpy as jnp
-
-    import jaxfog as jf
 
     key = jax.random.key(0)
     if case == "plain":
@@ -70,41 +69,90 @@ def _build(case: str):
     raise ValueError(case)
 
 
+def _load_tree(tree: str, name: str):
+    """The package `jaxfog` of the source tree `tree`, imported under the module name `name` (its modules import
+    one another relatively). While its scenes are built, `jaxfog` names it (the scene loader builds Modules of
+    `jaxfog`), so each tree renders its own classes."""
+    import importlib.util
+
+    root = Path(tree).resolve() / "jaxfog"
+    spec = importlib.util.spec_from_file_location(name, root / "__init__.py", submodule_search_locations=[str(root)])
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _timed(fn, n: int) -> tuple[float, float]:
+    """One call of `fn`: (wall, process CPU) microseconds per path."""
+    w, c = time.perf_counter(), time.process_time()
+    fn()
+    return (time.perf_counter() - w) / n * 1e6, (time.process_time() - c) / n * 1e6
+
+
+def run_ab(tree_a: str, tree_b: str, cases, reps: int) -> dict:
+    """Both trees in this process: each case compiled for both, then `reps` interleaved pairs (A B, then B A, ...)."""
+    import jax
+
+    saved = sys.modules.get("jaxfog")
+    mods = {}
+    fns = {}
+    for tag, tree in (("A", tree_a), ("B", tree_b)):
+        mods[tag] = _load_tree(tree, f"jaxfog_{tag.lower()}")
+        if not fns:
+            mods[tag].use_cpu_cores()
+        sys.modules["jaxfog"] = mods[tag]
+        try:
+            for c in cases:
+                fn, n = _build(mods[tag], c)
+                t = time.perf_counter()
+                fn()
+                fns[tag, c] = (fn, n, time.perf_counter() - t)
+        finally:
+            if saved is None:
+                sys.modules.pop("jaxfog", None)
+            else:
+                sys.modules["jaxfog"] = saved
+    out = {"devices": jax.local_device_count(), "cases": {}}
+    for c in cases:
+        rec = {tag: {"wall": [], "cpu": []} for tag in "AB"}
+        for r in range(reps):
+            for tag in ("AB" if r % 2 == 0 else "BA"):
+                fn, n, _ = fns[tag, c]
+                w, cpu = _timed(fn, n)
+                rec[tag]["wall"].append(w)
+                rec[tag]["cpu"].append(cpu)
+        summary = {"paths": fns["A", c][1], "first_call_s": {t: fns[t, c][2] for t in "AB"}, "us_per_path": rec}
+        for m in ("wall", "cpu"):
+            ratios = [b / a for a, b in zip(rec["A"][m], rec["B"][m])]
+            summary[f"{m}_ratio_B_over_A"] = ratios
+            summary[f"{m}_ratio_median"] = statistics.median(ratios)
+        out["cases"][c] = summary
+    return out
+
+
 def run_here(cases, reps: int) -> list[dict]:
-    """Time `cases` in this process (compile first); one dict per case."""
+    """Time `cases` with this process's `jaxfog` (compiled first); one dict per case."""
     import jaxfog as jf
 
     jf.use_cpu_cores()
     out = []
     for case in cases:
-        fn, n = _build(case)
+        fn, n = _build(jf, case)
         t = time.perf_counter()
         fn()
         first = time.perf_counter() - t
-        times = []
-        for _ in range(reps):
-            t = time.perf_counter()
-            fn()
-            times.append((time.perf_counter() - t) / n * 1e6)
-        out.append({"case": case, "paths": n, "first_call_s": first, "us_per_path": times,
-                    "median_us_per_path": statistics.median(times)})
+        wall, cpu = zip(*(_timed(fn, n) for _ in range(reps)))
+        out.append({"case": case, "paths": n, "first_call_s": first, "us_per_path": list(wall),
+                    "cpu_us_per_path": list(cpu), "median_us_per_path": statistics.median(wall)})
     return out
-
-
-def _child(tree: str, cases, reps: int) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(Path(tree).resolve()))
-    # the benchmark code itself is this file's, whichever tree is measured
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--case", ",".join(cases), "--reps", str(reps), "--json"]
-    res = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
-    return {r["case"]: r for r in map(json.loads, res.stdout.strip().splitlines())}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--case", default="both", help="plain, jvp, both, or a comma-separated list")
-    ap.add_argument("--reps", type=int, default=3, help="timed calls per case per process (default 3)")
-    ap.add_argument("--ab", nargs=2, metavar=("TREE_A", "TREE_B"), help="alternate processes of two source trees")
-    ap.add_argument("--pairs", type=int, default=3, help="A/B process pairs (default 3)")
+    ap.add_argument("--reps", type=int, default=3, help="timed calls (with --ab: interleaved pairs) per case (default 3)")
+    ap.add_argument("--ab", nargs=2, metavar=("TREE_A", "TREE_B"), help="compare the jaxfog/ of two source trees")
     ap.add_argument("--out", default=str(OUT), help="output folder for sample_ab.json")
     ap.add_argument("--label", default="", help="a name for this comparison (stored in the JSON)")
     ap.add_argument("--json", action="store_true", help="print one JSON line per case only")
@@ -119,35 +167,25 @@ def main(argv=None) -> int:
                 print(f"{r['case']:<6} {r['median_us_per_path']:7.3f} us/path (median of {args.reps}; "
                       f"{', '.join(f'{x:.3f}' for x in r['us_per_path'])}), first call {r['first_call_s']:.1f} s")
         return 0
-    pairs = []
-    for i in range(args.pairs):
-        a = _child(args.ab[0], cases, args.reps)
-        b = _child(args.ab[1], cases, args.reps)
-        pairs.append({"A": a, "B": b})
-        print(f"  pair {i + 1}/{args.pairs}: " + ", ".join(
-            f"{c} {a[c]['median_us_per_path']:.3f} -> {b[c]['median_us_per_path']:.3f} us/path" for c in cases),
-            flush=True)
-    print(f"\nA = {args.ab[0]}\nB = {args.ab[1]}\n{args.pairs} alternating process pairs, {args.reps} timed calls each")
-    print(f"{'case':<6} {'A us/path':>10} {'B us/path':>10} {'B/A median':>10} {'B/A min':>8} {'B/A max':>8}"
-          f" {'A first s':>9} {'B first s':>9}")
-    summary = {}
-    for c in cases:
-        ra = [p["A"][c]["median_us_per_path"] for p in pairs]
-        rb = [p["B"][c]["median_us_per_path"] for p in pairs]
-        ratios = [b / a for a, b in zip(ra, rb)]
-        fa = statistics.median(p["A"][c]["first_call_s"] for p in pairs)
-        fb = statistics.median(p["B"][c]["first_call_s"] for p in pairs)
-        summary[c] = {"A_us_per_path": ra, "B_us_per_path": rb, "ratio_B_over_A": ratios,
-                      "ratio_median": statistics.median(ratios), "A_first_call_s": fa, "B_first_call_s": fb}
-        print(f"{c:<6} {statistics.median(ra):10.3f} {statistics.median(rb):10.3f} {statistics.median(ratios):10.3f}"
-              f" {min(ratios):8.3f} {max(ratios):8.3f} {fa:9.1f} {fb:9.1f}")
+    res = run_ab(args.ab[0], args.ab[1], cases, args.reps)
+    print(f"A = {args.ab[0]}\nB = {args.ab[1]}\none process, {res['devices']} devices, {args.reps} interleaved "
+          f"pairs per case (A B, B A, ...); us per path: medians; ratios B/A pair by pair: median [min, max]")
+    print(f"{'case':<6} {'A wall':>7} {'B wall':>7} {'B/A wall':>22} {'A cpu':>7} {'B cpu':>7} {'B/A cpu':>22}"
+          f" {'first call s A/B':>16}")
+    for c, r in res["cases"].items():
+        u = r["us_per_path"]
+        med = lambda t, m: statistics.median(u[t][m])
+        rng = lambda m: (f"{r[m + '_ratio_median']:.3f} [{min(r[m + '_ratio_B_over_A']):.3f}, "
+                         f"{max(r[m + '_ratio_B_over_A']):.3f}]")
+        print(f"{c:<6} {med('A', 'wall'):7.3f} {med('B', 'wall'):7.3f} {rng('wall'):>22} {med('A', 'cpu'):7.3f}"
+              f" {med('B', 'cpu'):7.3f} {rng('cpu'):>22} {r['first_call_s']['A']:7.1f} /{r['first_call_s']['B']:5.1f}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     from benchmarks.common import machine_info, write_json
 
     name = f"sample_ab{('_' + args.label) if args.label else ''}.json"
     write_json(out / name, {"label": args.label, "A": args.ab[0], "B": args.ab[1], "cases": cases,
-                            "reps": args.reps, "pairs": pairs, "summary": summary, "machine": machine_info(),
+                            "reps": args.reps, **res, "machine": machine_info(),
                             "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())})
     print(f"wrote {out / name}")
     return 0

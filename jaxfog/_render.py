@@ -9,6 +9,7 @@ depends only on the scene, the key and spp (never on the batch size), and memory
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Callable
 
 import equinox as eqx
@@ -236,18 +237,32 @@ def render(
     n_items = items_per_call(scene, spp, batch_paths, chunk_paths, n_dev)
     item = np.arange(n_items)
     H, W = scene.camera.height, scene.camera.width
-    total = (jnp.zeros((H * W, 3), jnp.float32),) * (2 if variance else 1)
     chunks = jnp.asarray(item % n_ch, jnp.uint32)
+    total = None
     for start in range(0, spp, per):
         first = start + (item // n_ch) * group  # each item's first layer; padding items start past the batch
         valid = (first[:, None] + np.arange(group)[None, :]) < min(start + per, spp)
         out = _render_items(scene, key, jnp.asarray(first, jnp.uint32), chunks, jnp.asarray(valid), options,
                             proposal, chunk_paths, n_dev, variance)
-        total = tuple(a + b for a, b in zip(total, out if variance else (out,)))
+        out = out if variance else (out,)
+        total = out if total is None else _add(total, out)
         if progress is not None:
             progress(min(spp, start + per), spp)
-    mean = (total[0] / spp).reshape(H, W, 3)
-    if not variance:
+    return _finish(total, spp, (H, W, 3))
+
+
+@jax.jit
+def _add(a, b):
+    """The running sums of the batches (one dispatch, where eager adds cost one each, and more under `jax.jacfwd`)."""
+    return jax.tree.map(jnp.add, a, b)
+
+
+@partial(jax.jit, static_argnames="shape")
+def _finish(total, spp, shape):
+    """The image (and with the sums of squares, its per-pixel variance) from the sums over `spp` samples, in one
+    compiled call: the mean, and `max(E[x^2] - mean^2, 0) / (spp - 1)`."""
+    mean = (total[0] / spp).reshape(shape)
+    if len(total) == 1:
         return mean
-    second = (total[1] / spp).reshape(H, W, 3)
+    second = (total[1] / spp).reshape(shape)
     return mean, jnp.maximum(second - mean * mean, 0.0) / (spp - 1)
