@@ -8,6 +8,8 @@ Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line 
 - `jvp`: the fit's program: `jax.jacfwd` over (sigma_t, g) of `render(..., estimator="proposal", proposal=<the
   medium at the same values>, variance=True)` of spot_fog downscaled to 8 x 8 px (the camera's fov kept), 2048 spp
   (the shape of `fitting.core.Problem.value_and_jacobian`).
+- `call`: the same at 2 spp (128 paths): the fixed cost of one `render` call under `jax.jacfwd` (its figures are
+  per path too: multiply by 128 for the time per call).
 
 Each case is compiled once (the first call, reported apart), then timed `--reps` times, in us per path (one path =
 one sample of one pixel), wall-clock and process CPU time (all threads; steadier than wall time on a shared machine).
@@ -15,7 +17,7 @@ With `--ab`, the packages `jaxfog/` of two source trees (e.g. a copy of the last
 imported into one process (as `jaxfog_a`, `jaxfog_b`), both compiled, and their calls interleaved A B, B A, A B, ...:
 each pair gives a ratio B/A (B faster: < 1), printed as median [min, max] over the pairs, so a drift of the machine's
 speed hits both sides alike. Only ratios inside one run mean anything on a shared machine. Prints a table and
-writes `sample_ab[_LABEL].json` to `--out` (default docs/results/bench/sample in the repository).
+writes `sample.json` (with `--ab`: `sample_ab[_LABEL].json`) to `--out` (default docs/results/bench/sample in the repository).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "docs" / "results" / "bench" / "sample"
 SCENE = REPO / "data_synthetic" / "scenes" / "spot_fog.json"
-CASES = ("plain", "jvp")
+CASES = ("plain", "jvp", "call")
 
 
 def _build(jf, case: str):
@@ -49,9 +51,9 @@ def _build(jf, case: str):
             jf.render(scene, key, spp).block_until_ready()
 
         return fn, scene.camera.width * scene.camera.height * spp
-    if case == "jvp":
+    if case in ("jvp", "call"):
         scene = jf.load_scene(SCENE, overrides=["camera.width=8", "camera.height=8"]).scene
-        spp = 2048
+        spp = 2048 if case == "jvp" else 2
         ref = jax.lax.stop_gradient(scene.medium)
 
         def f(y):
@@ -158,14 +160,24 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON line per case only")
     args = ap.parse_args(argv)
     cases = list(CASES) if args.case == "both" else args.case.split(",")
+    from benchmarks.common import machine_info, write_json
+
     if not args.ab:
         rows = run_here(cases, args.reps)
-        for r in rows:
-            if args.json:
+        if args.json:
+            for r in rows:
                 print(json.dumps(r))
-            else:
-                print(f"{r['case']:<6} {r['median_us_per_path']:7.3f} us/path (median of {args.reps}; "
-                      f"{', '.join(f'{x:.3f}' for x in r['us_per_path'])}), first call {r['first_call_s']:.1f} s")
+            return 0
+        print(f"{'case':<6} {'paths':>7} {'us/path':>8} {'cpu us/path':>11} {'first call s':>12}  (medians of "
+              f"{args.reps})")
+        for r in rows:
+            print(f"{r['case']:<6} {r['paths']:7d} {r['median_us_per_path']:8.3f}"
+                  f" {statistics.median(r['cpu_us_per_path']):11.3f} {r['first_call_s']:12.1f}")
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "sample.json", {"rows": rows, "reps": args.reps, "machine": machine_info(),
+                                         "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())})
+        print(f"wrote {out / 'sample.json'}")
         return 0
     res = run_ab(args.ab[0], args.ab[1], cases, args.reps)
     print(f"A = {args.ab[0]}\nB = {args.ab[1]}\none process, {res['devices']} devices, {args.reps} interleaved "
@@ -181,8 +193,6 @@ def main(argv=None) -> int:
               f" {med('B', 'cpu'):7.3f} {rng('cpu'):>22} {r['first_call_s']['A']:7.1f} /{r['first_call_s']['B']:5.1f}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    from benchmarks.common import machine_info, write_json
-
     name = f"sample_ab{('_' + args.label) if args.label else ''}.json"
     write_json(out / name, {"label": args.label, "A": args.ab[0], "B": args.ab[1], "cases": cases,
                             "reps": args.reps, **res, "machine": machine_info(),
