@@ -8,6 +8,7 @@ Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line 
 - `jvp`: the fit's program: `jax.jacfwd` over (sigma_t, g) of `render(..., estimator="proposal", proposal=<the
   medium at the same values>, variance=True)` of spot_fog downscaled to 8 x 8 px (the camera's fov kept), 2048 spp
   (the shape of `fitting.core.Problem.value_and_jacobian`).
+- `jvp256`: the same at 256 spp (the fit's default spp: one call per view and Levenberg-Marquardt step).
 - `call`: the same at 2 spp (128 paths): the fixed cost of one `render` call under `jax.jacfwd` (its figures are
   per path too: multiply by 128 for the time per call).
 
@@ -33,7 +34,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "docs" / "results" / "bench" / "sample"
 SCENE = REPO / "data_synthetic" / "scenes" / "spot_fog.json"
-CASES = ("plain", "jvp", "call")
+CASES = ("plain", "jvp", "jvp256", "call")
 
 
 def _build(jf, case: str):
@@ -51,9 +52,9 @@ def _build(jf, case: str):
             jf.render(scene, key, spp).block_until_ready()
 
         return fn, scene.camera.width * scene.camera.height * spp
-    if case in ("jvp", "call"):
+    if case in ("jvp", "jvp256", "call"):
         scene = jf.load_scene(SCENE, overrides=["camera.width=8", "camera.height=8"]).scene
-        spp = 2048 if case == "jvp" else 2
+        spp = {"jvp": 2048, "jvp256": 256, "call": 2}[case]
         ref = jax.lax.stop_gradient(scene.medium)
 
         def f(y):

@@ -1,7 +1,8 @@
 """Rendering: generate rays -> `vmap(trace_path)` -> average, in batches of whole sample layers.
 
-A batch's work is a list of items, one chunk of pixels of one sample layer each; the devices share the items (so even
-a 1-spp image keeps every device busy) and each device traces its items one after the other.
+A batch's work is a list of items, one chunk of pixels of one sample layer each (of several layers side by side, for
+an image smaller than a chunk); the devices share the items (so even a 1-spp image keeps every device busy) and each
+device traces its items one after the other.
 
 Sample `k` of every pixel draws its random numbers from `fold_in(key, k)` (hashed by `_random.uniforms`), so an image
 depends only on the scene, the key and spp (never on the batch size), and memory is bounded for any spp.
@@ -212,7 +213,8 @@ def render(
 
     Execution (speed and memory only; the image changes at float32 rounding level, never in distribution):
     - `batch_paths`: paths per compiled call (memory bound); `progress(done_spp, spp)` is called after each batch.
-    - `chunk_paths`: paths traced together in one vectorized pass (default 1024, see `DEFAULT_CHUNK_PATHS`).
+    - `chunk_paths`: paths traced together in one vectorized pass (default 1024, see `DEFAULT_CHUNK_PATHS`); an
+      image of fewer pixels traces `chunk_paths // (H*W)` sample layers side by side in one pass.
     - `devices`: how many local devices share each batch's work (default: all of them; a CPU is one device
       unless `jaxfog.use_cpu_cores()` ran before JAX started, which the command-line entry points do).
 
