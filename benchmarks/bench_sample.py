@@ -2,6 +2,7 @@
 
     python -m benchmarks.bench_sample [--case plain|jvp|both] [--reps N]                 # this tree, one process
     python -m benchmarks.bench_sample --ab TREE_A TREE_B [--reps N] [--case ...] [--label NAME] [--out DIR]
+    python -m benchmarks.bench_sample --xla-option NAME=VALUE [--reps N] [--case ...] [--label NAME]
 
 Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line tools and the fit run):
 - `plain`: `render(spot_fog, key, 16)` at 128 x 128, max_depth 8 (the defaults).
@@ -17,7 +18,10 @@ one sample of one pixel), wall-clock and process CPU time (all threads; steadier
 With `--ab`, the packages `jaxfog/` of two source trees (e.g. a copy of the last commit and the working tree) are
 imported into one process (as `jaxfog_a`, `jaxfog_b`), both compiled, and their calls interleaved A B, B A, A B, ...:
 each pair gives a ratio B/A (B faster: < 1), printed as median [min, max] over the pairs, so a drift of the machine's
-speed hits both sides alike. Only ratios inside one run mean anything on a shared machine. Prints a table and
+speed hits both sides alike. With `--xla-option`, this tree's cases are each jitted whole, lowered once and compiled
+twice, with XLA's defaults (A) and with the given compiler options (B), then interleaved the same way (XLA_FLAGS
+cannot differ inside one process; the JSON also has the largest difference of the two programs' outputs). Only
+ratios inside one run mean anything on a shared machine. Prints a table and
 writes `sample.json` (with `--ab`: `sample_ab[_LABEL].json`) to `--out` (default docs/results/bench/sample in the repository).
 """
 
@@ -70,6 +74,65 @@ def _build(jf, case: str):
 
         return fn, scene.camera.width * scene.camera.height * spp
     raise ValueError(case)
+
+
+def _build_jitted(jf, case: str):
+    """`(jitted, args, n_paths)`: the case as one `jax.jit`-ed function of its arguments (the render inside it), to be
+    lowered once and compiled with different XLA compiler options."""
+    import jax
+    import jax.numpy as jnp
+
+    key = jax.random.key(0)
+    if case == "plain":
+        scene = jf.load_scene(SCENE).scene
+        return jax.jit(lambda k: jf.render(scene, k, 16)), (key,), scene.camera.width * scene.camera.height * 16
+    scene = jf.load_scene(SCENE, overrides=["camera.width=8", "camera.height=8"]).scene
+    spp = {"jvp": 2048, "jvp256": 256, "call": 2}[case]
+    ref = jax.lax.stop_gradient(scene.medium)
+
+    def f(y):
+        sc = scene.replace_medium(sigma_t=jnp.full(3, y[0]), g=y[1])
+        img, var = jf.render(sc, key, spp, estimator="proposal", proposal=ref, variance=True)
+        return img.ravel(), jax.lax.stop_gradient(var)
+
+    y0 = jnp.array([float(scene.medium.sigma_t[0]), float(scene.medium.phase.g)], jnp.float32)
+    return jax.jit(jax.jacfwd(f, has_aux=True)), (y0,), scene.camera.width * scene.camera.height * spp
+
+
+def run_options(options: dict, cases, reps: int) -> dict:
+    """This tree's cases, each jitted whole and compiled twice: A with XLA's defaults, B with `options`; then `reps`
+    interleaved pairs (A B, B A, ...). Also the largest difference of the two programs' outputs."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxfog as jf
+
+    jf.use_cpu_cores()
+    out = {"devices": jax.local_device_count(), "options": options, "cases": {}}
+    for c in cases:
+        fn, args, n = _build_jitted(jf, c)
+        lowered = fn.lower(*args)
+        progs, first = {}, {}
+        for tag, opts in (("A", None), ("B", options)):
+            t = time.perf_counter()
+            progs[tag] = lowered.compile(compiler_options=opts)
+            first[tag] = time.perf_counter() - t
+        ra, rb = (jax.block_until_ready(progs[t](*args)) for t in "AB")
+        diff = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(ra), jax.tree.leaves(rb)))
+        rec = {tag: {"wall": [], "cpu": []} for tag in "AB"}
+        for r in range(reps):
+            for tag in ("AB" if r % 2 == 0 else "BA"):
+                w, cpu = _timed(lambda: jax.block_until_ready(progs[tag](*args)), n)
+                rec[tag]["wall"].append(w)
+                rec[tag]["cpu"].append(cpu)
+        summary = {"paths": n, "first_call_s": first, "compile_s": first, "max_abs_output_difference": diff,
+                   "us_per_path": rec}
+        for m in ("wall", "cpu"):
+            ratios = [b / a for a, b in zip(rec["A"][m], rec["B"][m])]
+            summary[f"{m}_ratio_B_over_A"] = ratios
+            summary[f"{m}_ratio_median"] = statistics.median(ratios)
+        out["cases"][c] = summary
+    return out
 
 
 def _load_tree(tree: str, name: str):
@@ -156,6 +219,9 @@ def main(argv=None) -> int:
     ap.add_argument("--case", default="both", help="plain, jvp, both, or a comma-separated list")
     ap.add_argument("--reps", type=int, default=3, help="timed calls (with --ab: interleaved pairs) per case (default 3)")
     ap.add_argument("--ab", nargs=2, metavar=("TREE_A", "TREE_B"), help="compare the jaxfog/ of two source trees")
+    ap.add_argument("--xla-option", action="append", metavar="NAME=VALUE", default=[],
+                    help="compare this tree's programs compiled with XLA's defaults (A) and with these compiler options "
+                         "(B), e.g. xla_cpu_prefer_vector_width=512 (repeatable)")
     ap.add_argument("--out", default=str(OUT), help="output folder for sample_ab.json")
     ap.add_argument("--label", default="", help="a name for this comparison (stored in the JSON)")
     ap.add_argument("--json", action="store_true", help="print one JSON line per case only")
@@ -163,7 +229,7 @@ def main(argv=None) -> int:
     cases = list(CASES) if args.case == "both" else args.case.split(",")
     from benchmarks.common import machine_info, write_json
 
-    if not args.ab:
+    if not args.ab and not args.xla_option:
         rows = run_here(cases, args.reps)
         if args.json:
             for r in rows:
@@ -180,7 +246,15 @@ def main(argv=None) -> int:
                                          "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())})
         print(f"wrote {out / 'sample.json'}")
         return 0
-    res = run_ab(args.ab[0], args.ab[1], cases, args.reps)
+    if args.xla_option:
+        opts = {}
+        for o in args.xla_option:
+            k, v = o.split("=", 1)
+            opts[k] = int(v) if v.lstrip("-").isdigit() else {"true": True, "false": False}.get(v.lower(), v)
+        res = run_options(opts, cases, args.reps)
+        args.ab = ("XLA defaults", f"compiler options {opts}")
+    else:
+        res = run_ab(args.ab[0], args.ab[1], cases, args.reps)
     print(f"A = {args.ab[0]}\nB = {args.ab[1]}\none process, {res['devices']} devices, {args.reps} interleaved "
           f"pairs per case (A B, B A, ...); us per path: medians; ratios B/A pair by pair: median [min, max]")
     print(f"{'case':<6} {'A wall':>7} {'B wall':>7} {'B/A wall':>22} {'A cpu':>7} {'B cpu':>7} {'B/A cpu':>22}"
