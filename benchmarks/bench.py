@@ -339,13 +339,15 @@ def xla_memory(scene, strategy: dict, paths_per_call: int) -> dict | None:
         import jax.numpy as jnp
 
         from jaxfog import SamplingOptions
-        from jaxfog._render import DEFAULT_CHUNK_PATHS, _render_items, items_per_call, layers_per_batch
+        from jaxfog._render import (DEFAULT_CHUNK_PATHS, _render_items, items_per_call, layers_per_batch,
+                                    layers_per_chunk)
 
         n_dev = jax.local_device_count()  # as `render` splits a batch
         n = items_per_call(scene, 1 << 30, paths_per_call, DEFAULT_CHUNK_PATHS, n_dev)
         per = layers_per_batch(scene, 1 << 30, paths_per_call)
         ids = jnp.zeros(n, jnp.uint32)
-        args = (scene, jax.random.key(0), ids, ids, jnp.int32(n), SamplingOptions(**strategy), None,
+        valid = jnp.ones((n, layers_per_chunk(scene, 1 << 30, paths_per_call, DEFAULT_CHUNK_PATHS)), bool)
+        args = (scene, jax.random.key(0), ids, ids, valid, SamplingOptions(**strategy), None,
                 DEFAULT_CHUNK_PATHS, n_dev)
         ma = _render_items.lower(*args).compile().compiled.memory_analysis()
         return {**memory_dict(ma), "paths_per_call": per * scene.camera.width * scene.camera.height}

@@ -1,7 +1,8 @@
 """Rendering: generate rays -> `vmap(trace_path)` -> average, in batches of whole sample layers.
 
-A batch's work is a list of items, one chunk of pixels of one sample layer each; the devices share the items (so even
-a 1-spp image keeps every device busy) and each device traces its items one after the other.
+A batch's work is a list of items, one chunk of pixels of one sample layer each (of several layers side by side, for
+an image smaller than a chunk); the devices share the items (so even a 1-spp image keeps every device busy) and each
+device traces its items one after the other.
 
 Sample `k` of every pixel draws its random numbers from `fold_in(key, k)` (hashed by `_random.uniforms`), so an image
 depends only on the scene, the key and spp (never on the batch size), and memory is bounded for any spp.
@@ -9,6 +10,7 @@ depends only on the scene, the key and spp (never on the batch size), and memory
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Callable
 
 import equinox as eqx
@@ -54,11 +56,24 @@ def n_chunks(scene: Scene, chunk_paths: int = DEFAULT_CHUNK_PATHS) -> tuple[int,
     return chunk, -(-n_pix // chunk)
 
 
+def layers_per_chunk(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PATHS,
+                     chunk_paths: int = DEFAULT_CHUNK_PATHS) -> int:
+    """Sample layers traced side by side in one vectorized pass: an image of fewer than `chunk_paths` pixels puts
+    `chunk_paths // (H*W)` layers (at most a batch's `layers_per_batch`) into one pass, so a small image (the fit's
+    8 x 8) is traced in passes as wide as a large image's chunks instead of one pass per 64-pixel layer; 1 for an
+    image of at least `chunk_paths` pixels, and for `max_depth = -1` (its own regenerating loop)."""
+    n_pix = scene.camera.width * scene.camera.height
+    if scene.max_depth == -1 or n_pix >= chunk_paths:
+        return 1
+    return max(1, min(chunk_paths // n_pix, layers_per_batch(scene, spp, batch_paths)))
+
+
 def items_per_call(scene: Scene, spp: int, batch_paths: int = DEFAULT_BATCH_PATHS,
                    chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1) -> int:
-    """Work items (one chunk of one sample layer) `render` traces per compiled call: the chunks of
+    """Work items (one chunk of `layers_per_chunk` sample layers) `render` traces per compiled call: the chunks of
     `layers_per_batch` layers, rounded up to a multiple of `n_devices` (padding items are traced and dropped)."""
-    n = layers_per_batch(scene, spp, batch_paths) * n_chunks(scene, chunk_paths)[1]
+    group = layers_per_chunk(scene, spp, batch_paths, chunk_paths)
+    n = -(-layers_per_batch(scene, spp, batch_paths) // group) * n_chunks(scene, chunk_paths)[1]
     return -(-n // n_devices) * n_devices
 
 
@@ -67,27 +82,41 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
                  proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS, moments: bool = False):
     """Sum of every pixel's radiance over the given work items, `(n_chunks * chunk, 3)` (rows past `H*W` belong to the
     last chunk's padding); with `moments`, also the sum of the squared radiance (same shape), as `(sum, sum_sq)`.
-    Item `i` traces chunk `chunk_ids[i]` of sample layer `layer_ids[i]`, one after the other; items where `valid` is False add nothing. A padding row traces a real pixel (its index modulo `H*W`, so no NaN
+    Item `i` traces chunk `chunk_ids[i]` of the sample layers `layer_ids[i] + j`, `j < G` (`G = valid.shape[1]`,
+    `layers_per_chunk`: the layers side by side in one vectorized pass), one item after the other; a layer where
+    `valid[i, j]` is False adds nothing. A padding row traces a real pixel (its index modulo `H*W`, so no NaN
     can reach a gradient) with its own random numbers, and is dropped by the caller."""
     cam = scene.camera
     H, W = cam.height, cam.width
     tracer = make_tracer(scene, pack(scene), options, proposal)
     n_iter, K = n_iterations(scene), n_dims(scene)
     chunk, n_ch = n_chunks(scene, chunk_paths)
+    G = valid.shape[1]
 
     def one_path(pixel, U_p):
         o, d = cam.generate_ray(pixel)
         return trace_path(tracer, o, d, U_p)
 
+    def draws(layer_id, row0, pix):
+        """One layer's pixel positions and path uniforms for the chunk's rows (a function of the layer and the row
+        only, so of neither the chunking nor the grouping)."""
+        k_pix, k_path = jax.random.split(jax.random.fold_in(key, layer_id))
+        return pix + uniforms(k_pix, chunk, 2, row0), uniforms(k_path, chunk, n_iter * K, row0).reshape(chunk, n_iter, K)
+
     def step(acc, xs):
         layer_id, chunk_id, ok = xs
-        k_pix, k_path = jax.random.split(jax.random.fold_in(key, layer_id))
         row0 = chunk_id * chunk
         rows, cols = jnp.divmod((row0 + jnp.arange(chunk, dtype=jnp.uint32)) % (H * W), W)
-        pixels = jnp.stack([cols, rows], axis=-1).astype(jnp.float32) + uniforms(k_pix, chunk, 2, row0)
-        U = uniforms(k_path, chunk, n_iter * K, row0).reshape(chunk, n_iter, K)
-        radiance = jnp.where(ok, jax.vmap(one_path)(pixels, U), 0.0)
-        terms = (radiance, radiance * radiance) if moments else (radiance,)
+        pix = jnp.stack([cols, rows], axis=-1).astype(jnp.float32)
+        if G == 1:
+            pixels, U = draws(layer_id, row0, pix)
+            radiance = jnp.where(ok[0], jax.vmap(one_path)(pixels, U), 0.0)
+            terms = (radiance, radiance * radiance) if moments else (radiance,)
+        else:  # G layers side by side: one pass of G * chunk paths, summed over the layers
+            pixels, U = jax.vmap(lambda j: draws(layer_id + j, row0, pix))(jnp.arange(G, dtype=jnp.uint32))
+            radiance = jax.vmap(one_path)(pixels.reshape(G * chunk, 2), U.reshape(G * chunk, n_iter, K))
+            radiance = jnp.where(ok[:, None, None], radiance.reshape(G, chunk, 3), 0.0)
+            terms = (radiance.sum(0), (radiance * radiance).sum(0)) if moments else (radiance.sum(0),)
         add = lambda a, x: jax.lax.dynamic_update_slice_in_dim(
             a, jax.lax.dynamic_slice_in_dim(a, row0, chunk) + x, row0, axis=0)
         return tuple(add(a, x) for a, x in zip(acc, terms)), None
@@ -106,6 +135,7 @@ def _trace_items_unbounded(scene: Scene, key: PRNGKeyArray, layer_ids: Array, ch
     `moments` (`render(..., variance=True)`), `_unbounded.moments` (the plain loop, also summing the squares):
     forward mode only."""
     chunk, n_ch = n_chunks(scene, chunk_paths)
+    valid = valid[:, 0]  # one layer per item (`layers_per_chunk` is 1 for max_depth = -1)
     words = jax.vmap(lambda layer: jnp.stack([key_words(k) for k in jax.random.split(jax.random.fold_in(key, layer))])
                      )(layer_ids)  # (items, 2 [pixel, path], 3)
     if moments:
@@ -127,16 +157,16 @@ def sampling_options(sampling: SamplingOptions | None = None, **fields) -> Sampl
 
 
 @eqx.filter_jit
-def _render_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, n_valid: Array,
+def _render_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, valid: Array,
                   options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1,
                   moments: bool = False):
-    """`_trace_items` over the work items (the first `n_valid` are real), split evenly across the first `n_devices`
+    """`_trace_items` over the work items (`valid`: `(n_items, layers_per_chunk)`, which of each item's layers are
+    real), split evenly across the first `n_devices`
     local devices (static; the number of items must be a multiple of it): one compiled program, each device scans
     its share of the items, the shares are summed; returns `(H*W, 3)` (with `moments`, a pair: the sums of the
     radiance and of its square). The items and their random numbers do not
     depend on `n_devices`; only the float32 summation order does."""
     n_pix = scene.camera.width * scene.camera.height
-    valid = jnp.arange(layer_ids.shape[0]) < n_valid
     trace = _trace_items_unbounded if scene.max_depth == -1 else _trace_items
     if n_devices == 1:
         out = trace(scene, key, layer_ids, chunk_ids, valid, options, proposal, chunk_paths, moments)
@@ -183,7 +213,8 @@ def render(
 
     Execution (speed and memory only; the image changes at float32 rounding level, never in distribution):
     - `batch_paths`: paths per compiled call (memory bound); `progress(done_spp, spp)` is called after each batch.
-    - `chunk_paths`: paths traced together in one vectorized pass (default 1024, see `DEFAULT_CHUNK_PATHS`).
+    - `chunk_paths`: paths traced together in one vectorized pass (default 1024, see `DEFAULT_CHUNK_PATHS`); an
+      image of fewer pixels traces `chunk_paths // (H*W)` sample layers side by side in one pass.
     - `devices`: how many local devices share each batch's work (default: all of them; a CPU is one device
       unless `jaxfog.use_cpu_cores()` ran before JAX started, which the command-line entry points do).
 
@@ -203,21 +234,37 @@ def render(
         raise ValueError(f"render: variance=True needs spp >= 2 (a variance from one sample is undefined), got {spp}")
     n_dev = jax.local_device_count() if devices is None else int(devices)
     per = layers_per_batch(scene, spp, batch_paths)
+    group = layers_per_chunk(scene, spp, batch_paths, chunk_paths)
     _, n_ch = n_chunks(scene, chunk_paths)
     n_items = items_per_call(scene, spp, batch_paths, chunk_paths, n_dev)
     item = np.arange(n_items)
     H, W = scene.camera.height, scene.camera.width
-    total = (jnp.zeros((H * W, 3), jnp.float32),) * (2 if variance else 1)
+    chunks = jnp.asarray(item % n_ch, jnp.uint32)
+    total = None
     for start in range(0, spp, per):
-        layers = jnp.asarray(start + item // n_ch, jnp.uint32)
-        chunks = jnp.asarray(item % n_ch, jnp.uint32)
-        n_valid = jnp.int32(min(per, spp - start) * n_ch)
-        out = _render_items(scene, key, layers, chunks, n_valid, options, proposal, chunk_paths, n_dev, variance)
-        total = tuple(a + b for a, b in zip(total, out if variance else (out,)))
+        first = start + (item // n_ch) * group  # each item's first layer; padding items start past the batch
+        valid = (first[:, None] + np.arange(group)[None, :]) < min(start + per, spp)
+        out = _render_items(scene, key, jnp.asarray(first, jnp.uint32), chunks, jnp.asarray(valid), options,
+                            proposal, chunk_paths, n_dev, variance)
+        out = out if variance else (out,)
+        total = out if total is None else _add(total, out)
         if progress is not None:
             progress(min(spp, start + per), spp)
-    mean = (total[0] / spp).reshape(H, W, 3)
-    if not variance:
+    return _finish(total, spp, (H, W, 3))
+
+
+@jax.jit
+def _add(a, b):
+    """The running sums of the batches (one dispatch, where eager adds cost one each, and more under `jax.jacfwd`)."""
+    return jax.tree.map(jnp.add, a, b)
+
+
+@partial(jax.jit, static_argnames="shape")
+def _finish(total, spp, shape):
+    """The image (and with the sums of squares, its per-pixel variance) from the sums over `spp` samples, in one
+    compiled call: the mean, and `max(E[x^2] - mean^2, 0) / (spp - 1)`."""
+    mean = (total[0] / spp).reshape(shape)
+    if len(total) == 1:
         return mean
-    second = (total[1] / spp).reshape(H, W, 3)
+    second = (total[1] / spp).reshape(shape)
     return mean, jnp.maximum(second - mean * mean, 0.0) / (spp - 1)

@@ -86,6 +86,44 @@ def test_image_does_not_depend_on_batch_paths():
     assert not np.allclose(np.asarray(jf.render(scene, key, SPP - 1, batch_paths=N_PIX * 6)), one, rtol=1e-3)
 
 
+def _side_by_side(forward_mode: bool):
+    """`(one layer per pass, 4 layers per pass)` renders of `fog_scene` at 10 spp with `variance=True` (batches of
+    1 layer, the program of `test_variance_is_the_samples_variance_over_spp`, and of 4 layers: 4 + 4 + 2, the last
+    pass half padding): each `(image, variance)`, or with `forward_mode` `((image, variance), (d image,
+    d variance))` by `jax.jvp` in sigma_t."""
+    from jaxfog._render import layers_per_chunk
+
+    scene, key, spp = fog_scene(), jax.random.key(7), 10
+    assert layers_per_chunk(scene, spp, batch_paths=N_PIX) == 1
+    assert layers_per_chunk(scene, spp, batch_paths=4 * N_PIX) == 4
+    if not forward_mode:
+        return [jf.render(scene, key, spp, variance=True, batch_paths=b) for b in (N_PIX, 4 * N_PIX)]
+    f = lambda b: lambda s: jf.render(scene.replace_medium(sigma_t=s), key, spp, variance=True, batch_paths=b)
+    return [jax.jvp(f(b), (0.5,), (1.0,)) for b in (N_PIX, 4 * N_PIX)]
+
+
+def test_layers_side_by_side_give_the_same_image():
+    """An image of fewer pixels than `chunk_paths` is traced with several sample layers side by side in one
+    vectorized pass (`_render.layers_per_chunk`; the fit's 8 x 8 views: 16 layers per 1024-path pass). Each path
+    keeps its random numbers (a function of its layer and pixel), so the image and its variance equal those of one
+    layer per pass up to float32 rounding (two compiled programs: `helpers.assert_same_render_up_to_rounding`).
+    10 spp in passes of 4 layers: the last pass has two padding layers, which must add nothing (counted, they
+    would raise the image by ~20%)."""
+    (img1, var1), (img4, var4) = _side_by_side(False)
+    assert_same_render_up_to_rounding(img4, img1, spp=10, label="4 layers per pass vs 1")
+    assert_same_render_up_to_rounding(var4, var1, spp=10, label="variance, 4 layers per pass vs 1")
+
+
+@pytest.mark.slow
+def test_layers_side_by_side_give_the_same_derivative():
+    """The same in forward mode (`jax.jvp` in sigma_t, as the fit's `jax.jacfwd`): the derivative images agree up
+    to float32 rounding (~20 s: two forward-mode programs to compile)."""
+    ((img1, _), (d1, dv1)), ((img4, _), (d4, dv4)) = _side_by_side(True)
+    assert_same_render_up_to_rounding(img4, img1, spp=10, label="image, 4 layers per pass vs 1")
+    assert_same_render_up_to_rounding(d4, d1, spp=10, scale=d1, label="d image / d sigma_t, 4 vs 1")
+    assert_same_render_up_to_rounding(dv4, dv1, spp=10, scale=dv1, label="d variance / d sigma_t, 4 vs 1")
+
+
 # ------------------------------------------------------------------------------------------------ no recompilation
 class CompileCounter:
     """Counts XLA backend compilations (jax.monitoring duration events) while active."""
