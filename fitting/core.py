@@ -138,7 +138,7 @@ class FitConfig:
     (value render at `approach_spp_factor` x spp; also the fallback of any round whose split pass is not finite or
     whose normal matrix is not positive definite)."""
 
-    spp: int = 8
+    spp: int = 256
     seed: int = 0
     solver: str = "lm"
     max_rounds: int = 20
