@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
 import time
@@ -45,7 +44,6 @@ def _build(jf, case: str):
     """`(fn, n_paths)`: a no-argument callable that runs the case once with the package `jf` and blocks, and the
     paths it traces."""
     import jax
-    import jax.numpy as jnp
 
     key = jax.random.key(0)
     if case == "plain":
@@ -57,35 +55,23 @@ def _build(jf, case: str):
 
         return fn, scene.camera.width * scene.camera.height * spp
     if case in ("jvp", "jvp256", "call"):
-        scene = jf.load_scene(SCENE, overrides=["camera.width=8", "camera.height=8"]).scene
-        spp = {"jvp": 2048, "jvp256": 256, "call": 2}[case]
-        ref = jax.lax.stop_gradient(scene.medium)
-
-        def f(y):
-            sc = scene.replace_medium(sigma_t=jnp.full(3, y[0]), g=y[1])
-            img, var = jf.render(sc, key, spp, estimator="proposal", proposal=ref, variance=True)
-            return img.ravel(), jax.lax.stop_gradient(var)
-
-        y0 = jnp.array([float(scene.medium.sigma_t[0]), float(scene.medium.phase.g)], jnp.float32)
+        f, y0, n_paths = _fit_render(jf, case)
         jac = jax.jacfwd(f, has_aux=True)
 
         def fn():
             jax.block_until_ready(jac(y0))
 
-        return fn, scene.camera.width * scene.camera.height * spp
+        return fn, n_paths
     raise ValueError(case)
 
 
-def _build_jitted(jf, case: str):
-    """`(jitted, args, n_paths)`: the case as one `jax.jit`-ed function of its arguments (the render inside it), to be
-    lowered once and compiled with different XLA compiler options."""
+def _fit_render(jf, case: str):
+    """`(f, y0, n_paths)` of a fit-render case: `f(y)` is the "proposal" render with its variance of spot_fog at
+    8 x 8 px as a function of `y = (sigma_t, g)` (as `fitting.core.Problem.value_and_jacobian`), `y0` the scene's."""
     import jax
     import jax.numpy as jnp
 
     key = jax.random.key(0)
-    if case == "plain":
-        scene = jf.load_scene(SCENE).scene
-        return jax.jit(lambda k: jf.render(scene, k, 16)), (key,), scene.camera.width * scene.camera.height * 16
     scene = jf.load_scene(SCENE, overrides=["camera.width=8", "camera.height=8"]).scene
     spp = {"jvp": 2048, "jvp256": 256, "call": 2}[case]
     ref = jax.lax.stop_gradient(scene.medium)
@@ -96,7 +82,20 @@ def _build_jitted(jf, case: str):
         return img.ravel(), jax.lax.stop_gradient(var)
 
     y0 = jnp.array([float(scene.medium.sigma_t[0]), float(scene.medium.phase.g)], jnp.float32)
-    return jax.jit(jax.jacfwd(f, has_aux=True)), (y0,), scene.camera.width * scene.camera.height * spp
+    return f, y0, scene.camera.width * scene.camera.height * spp
+
+
+def _build_jitted(jf, case: str):
+    """`(jitted, args, n_paths)`: the case as one `jax.jit`-ed function of its arguments (the render inside it), to be
+    lowered once and compiled with different XLA compiler options."""
+    import jax
+
+    key = jax.random.key(0)
+    if case == "plain":
+        scene = jf.load_scene(SCENE).scene
+        return jax.jit(lambda k: jf.render(scene, k, 16)), (key,), scene.camera.width * scene.camera.height * 16
+    f, y0, n_paths = _fit_render(jf, case)
+    return jax.jit(jax.jacfwd(f, has_aux=True)), (y0,), n_paths
 
 
 def run_options(options: dict, cases, reps: int) -> dict:
@@ -119,19 +118,31 @@ def run_options(options: dict, cases, reps: int) -> dict:
             first[tag] = time.perf_counter() - t
         ra, rb = (jax.block_until_ready(progs[t](*args)) for t in "AB")
         diff = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(ra), jax.tree.leaves(rb)))
-        rec = {tag: {"wall": [], "cpu": []} for tag in "AB"}
-        for r in range(reps):
-            for tag in ("AB" if r % 2 == 0 else "BA"):
-                w, cpu = _timed(lambda: jax.block_until_ready(progs[tag](*args)), n)
-                rec[tag]["wall"].append(w)
-                rec[tag]["cpu"].append(cpu)
-        summary = {"paths": n, "first_call_s": first, "compile_s": first, "max_abs_output_difference": diff,
-                   "us_per_path": rec}
-        for m in ("wall", "cpu"):
-            ratios = [b / a for a, b in zip(rec["A"][m], rec["B"][m])]
-            summary[f"{m}_ratio_B_over_A"] = ratios
-            summary[f"{m}_ratio_median"] = statistics.median(ratios)
-        out["cases"][c] = summary
+        rec = _interleaved(lambda tag: _timed(lambda: jax.block_until_ready(progs[tag](*args)), n), reps)
+        out["cases"][c] = {"paths": n, "first_call_s": first, "compile_s": first, "max_abs_output_difference": diff,
+                           "us_per_path": rec, **_ratios(rec)}
+    return out
+
+
+def _interleaved(run, reps: int) -> dict:
+    """`reps` pairs of `run("A")`, `run("B")` in alternating order (A B, B A, ...); each returns `(wall, cpu)` (us per
+    path). Returns `{"A": {"wall": [...], "cpu": [...]}, "B": ...}`."""
+    rec = {tag: {"wall": [], "cpu": []} for tag in "AB"}
+    for r in range(reps):
+        for tag in ("AB" if r % 2 == 0 else "BA"):
+            w, cpu = run(tag)
+            rec[tag]["wall"].append(w)
+            rec[tag]["cpu"].append(cpu)
+    return rec
+
+
+def _ratios(rec: dict) -> dict:
+    """Per measure, the pairs' ratios B / A and their median."""
+    out = {}
+    for m in ("wall", "cpu"):
+        ratios = [b / a for a, b in zip(rec["A"][m], rec["B"][m])]
+        out[f"{m}_ratio_B_over_A"] = ratios
+        out[f"{m}_ratio_median"] = statistics.median(ratios)
     return out
 
 
@@ -181,19 +192,9 @@ def run_ab(tree_a: str, tree_b: str, cases, reps: int) -> dict:
                 sys.modules["jaxfog"] = saved
     out = {"devices": jax.local_device_count(), "cases": {}}
     for c in cases:
-        rec = {tag: {"wall": [], "cpu": []} for tag in "AB"}
-        for r in range(reps):
-            for tag in ("AB" if r % 2 == 0 else "BA"):
-                fn, n, _ = fns[tag, c]
-                w, cpu = _timed(fn, n)
-                rec[tag]["wall"].append(w)
-                rec[tag]["cpu"].append(cpu)
-        summary = {"paths": fns["A", c][1], "first_call_s": {t: fns[t, c][2] for t in "AB"}, "us_per_path": rec}
-        for m in ("wall", "cpu"):
-            ratios = [b / a for a, b in zip(rec["A"][m], rec["B"][m])]
-            summary[f"{m}_ratio_B_over_A"] = ratios
-            summary[f"{m}_ratio_median"] = statistics.median(ratios)
-        out["cases"][c] = summary
+        rec = _interleaved(lambda tag: _timed(fns[tag, c][0], fns[tag, c][1]), reps)
+        out["cases"][c] = {"paths": fns["A", c][1], "first_call_s": {t: fns[t, c][2] for t in "AB"},
+                           "us_per_path": rec, **_ratios(rec)}
     return out
 
 
