@@ -144,3 +144,19 @@ def test_first_round_is_checked_and_lm_still_fits(target):
     for n, true in TRUTH.items():
         tol = 4.0 * res.uncertainty[n]["se"] * np.sqrt(1 + 1 / 16)
         assert abs(res.params[n] - true) < tol, (n, res.params[n], true, tol)
+
+
+def test_box_mean_averages_existing_neighbours_and_keeps_non_finite_values():
+    from fitting.core import box_mean
+
+    x = np.arange(16.0).reshape(4, 4, 1)
+    m = box_mean(x, 1)[..., 0]
+    assert m[1, 1] == pytest.approx(np.mean(x[:3, :3]))          # interior: the 3 x 3 block
+    assert m[0, 0] == pytest.approx(np.mean(x[:2, :2]))          # corner: the 4 pixels that exist
+    assert m[0, 2] == pytest.approx(np.mean(x[:2, 1:4]))         # edge: 6 pixels
+    np.testing.assert_array_equal(box_mean(x, 0), x)             # r = 0: unchanged
+    y = x.copy()
+    y[0, 0, 0] = np.inf
+    my = box_mean(y, 1)[..., 0]
+    assert np.isinf(my[0, 0])                                    # stays as it is
+    assert my[1, 1] == pytest.approx(np.mean(np.delete(x[:3, :3].ravel(), 0)))  # and out of its neighbours' means
