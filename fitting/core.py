@@ -186,6 +186,9 @@ class FitResult:
     correlation: list | None = None
     information: dict | None = None
     timing: list = field(default_factory=list)
+    cov_target: list | None = None
+    """The estimate's covariance from the targets' noise alone (parameters' units; `C_T`): what more views, rather
+    than more rounds, can shrink."""
 
     def to_json(self) -> dict:
         return {
@@ -193,6 +196,7 @@ class FitResult:
             "uncertainty": self.uncertainty, "iterations": self.iterations, "rounds": self.rounds,
             "wall_s": self.wall_s, "chi2": self.chi2, "correlation": self.correlation,
             "information": self.information, "timing": self.timing, "history": self.history,
+            "cov_target": self.cov_target,
         }
 
 
@@ -905,6 +909,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         correlation=corr.tolist(),
         information=information,
         timing=timing,
+        cov_target=to_params(C_T, y_mean).tolist() if np.all(np.isfinite(C_T)) else None,
     )
 
 
@@ -1013,3 +1018,35 @@ def _rounds_cov(Y, C_R):
         f = np.sqrt((1.0 + np.clip(rho, 0.0, 0.9)) / (1.0 - np.clip(rho, 0.0, 0.9)))
         C = C * np.outer(f, f)
     return C
+
+
+def candidate_fisher(scene: jaxfog.Scene, names: list[str], values: dict, spp: int, target_samples: float | None,
+                     key, noise: np.ndarray | None = None) -> np.ndarray:
+    """The Fisher information (parameters' units) a target of `scene`'s view would add at the estimate `values`:
+    `sym(Ja^T W Jb)` with Ja, Jb the Jacobians of the view's pixels (`"proposal"` renders at the estimate, `spp`
+    samples each, two independent keys: no Monte Carlo `Var[J]` in it; negative eigenvalues clipped to 0) and `W`
+    the inverse of the target's per-pixel noise variance, assumed to be the render's per-sample variance over
+    `target_samples` samples per pixel, or `noise` (the per-element variance, e.g. a target's own block estimate)
+    where given (floored at `VAR_FLOOR` of the median, as the fit's weights). `scene` at the resolution it would be
+    fitted at. For `fitting.information.rank_views`."""
+    y = to_unconstrained(names, values)
+    d = jacobian_to_params(names, np.asarray(y))
+    ref = _reference([View(scene, np.zeros((1, 1, 3)), "candidate")], values)
+    Js, var = [], None
+    for kk in jax.random.split(key):
+        def f(yy, kk=kk):
+            img, v = jaxfog.render(apply(scene, from_unconstrained(names, yy)), kk, spp, estimator="proposal",
+                                   proposal=ref, variance=True)
+            return img.ravel(), jax.lax.stop_gradient(v).ravel()
+        J, v = jax.jacfwd(f, has_aux=True)(y)
+        Js.append(np.asarray(J, np.float64) / d[None, :])
+        var = np.asarray(v, np.float64) if var is None else 0.5 * (var + np.asarray(v, np.float64))
+    noise = var * spp / float(target_samples) if noise is None else np.asarray(noise, np.float64).ravel()
+    pos = noise[np.isfinite(noise) & (noise > 0)]
+    if pos.size == 0:
+        return np.full((len(names), len(names)), np.nan)
+    noise = np.maximum(np.where(np.isfinite(noise), noise, np.inf), VAR_FLOOR * float(np.median(pos)))
+    Ja, Jb = Js
+    F = 0.5 * (Ja.T @ (Jb / noise[:, None]) + Jb.T @ (Ja / noise[:, None]))
+    w, V = np.linalg.eigh(0.5 * (F + F.T))
+    return (V * np.maximum(w, 0.0)) @ V.T

@@ -185,6 +185,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--residuals", choices=["decorrelated", "plain"], default="decorrelated",
                    help="LM residuals: value at the reference from an independent key (default), or plain fixed-key "
                         "residuals (biased toward parameters with less render noise; for comparison)")
+    p.add_argument("--candidates", nargs="+", default=[], metavar="SCENE.json",
+                   help="after the fit, rank these views (scene files of the same medium: other cameras or lights) by "
+                        "how much a target of each would shrink the uncertainty")
+    p.add_argument("--candidate-spp", type=int, default=None, metavar="N",
+                   help="samples per pixel assumed for a candidate's target (default: the first target's header "
+                        "spp, else 256)")
     p.add_argument("--out", required=True, help="RESULT.json (PNG figures are written beside it)")
     p.add_argument("--quiet", action="store_true", help="no per-iteration progress")
     return p
@@ -252,6 +258,9 @@ def _run(args) -> int:
         scenes_full.append(sf.scene)
         targets_full.append(target)
         truths.append(true_values(meta))
+    candidates = load_candidates(args.candidates, args.downscale)
+    if args.candidate_spp is not None and args.candidate_spp < 1:
+        raise FitError(f"--candidate-spp must be >= 1, got {args.candidate_spp}")
     start = scene_values(views[0].scene)
     init = {n: init_given.get(n, start.get(n)) for n in names}
     for n in names:
@@ -277,7 +286,13 @@ def _run(args) -> int:
             for c in "rgb":
                 truth.setdefault(f"{f}[{c}]", truth[f])
     print_table(result, truth)
+    ranking = None
+    if candidates:
+        spp_c = args.candidate_spp or next((v.target_spp for v in views if v.target_spp), 256)
+        ranking = rank_candidates(result, views, candidates, spp_c, args.spp)
     payload = result.to_json()
+    if ranking is not None:
+        payload["candidates"] = ranking
     payload.update({"targets": [v.name for v in views], "truth": truth, "spp": args.spp, "seed": args.seed,
                     "solver": args.solver, "downscale": args.downscale})
     write_json_atomic(args.out, payload)
@@ -293,6 +308,68 @@ def _run(args) -> int:
         print("FIT FAILED: " + "; ".join(result.messages), file=sys.stderr)
         return 1
     return 0
+
+
+def load_candidates(paths, downscale: int | None) -> list[tuple[str, object, int]]:
+    """The `--candidates` scene files, checked before any work: `(name, scene at its fit resolution, downscale)`;
+    the fit's `--downscale` where it divides the candidate's image, else `auto_downscale`."""
+    import equinox as eqx
+
+    import jaxfog
+
+    out = []
+    for p in paths:
+        if not p.lower().endswith(".json"):
+            raise FitError(f"--candidates expects scene files (.json), got {p!r}")
+        try:
+            sf = jaxfog.load_scene(p)
+        except (jaxfog.SceneError, OSError) as e:
+            raise FitError(f"--candidates: {e}") from None
+        if sf.scene.medium is None:
+            raise FitError(f"--candidates {p}: the scene has no medium")
+        cam = sf.scene.camera
+        f = downscale if downscale and cam.width % downscale == 0 and cam.height % downscale == 0 else \
+            auto_downscale(cam.width, cam.height)
+        small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov,
+                              width=cam.width // f, height=cam.height // f)
+        out.append((os.path.basename(p), eqx.tree_at(lambda s: s.camera, sf.scene, small), f))
+    return out
+
+
+CANDIDATE_SPP_FACTOR = 4
+"""A candidate's two Jacobian renders have this many times the fit's spp (at 8 x 8 px the rounds' forward-mode
+program shape: 1,024 spp at the default 256)."""
+
+
+def rank_candidates(result, views, candidates, target_spp: int, spp: int) -> list[dict]:
+    """Rank the candidate views by the worst-determined standard error with a target of each (at `target_spp` x
+    its downscale^2 samples per fit pixel) added to the fitted views' (`views`); prints the ranking. The
+    information of every view is `fitting.core.candidate_fisher` at the estimate, the targets' noise alone."""
+    import jax
+
+    from .core import candidate_fisher
+    from .information import rank_views
+
+    names = result.names
+    key = jax.random.key(777)
+    spp_j = spp * CANDIDATE_SPP_FACTOR
+    # the fitted views' information computed the same way (their targets' noise: the header's spp, else the block
+    # estimate), so that a candidate is compared like with like; the fit's own render noise, most of its standard
+    # error on the main job, is shrunk by more rounds, not by more views
+    fisher = sum(candidate_fisher(v.scene, names, result.params, spp_j,
+                                  v.target_spp * v.downscale ** 2 if v.target_spp else None,
+                                  jax.random.fold_in(key, 1000 + i),
+                                  noise=None if v.target_spp else v.target_var)
+                 for i, v in enumerate(views))
+    Fc = {name: candidate_fisher(sc, names, result.params, spp_j, target_spp * f * f, jax.random.fold_in(key, i))
+          for i, (name, sc, f) in enumerate(candidates)}
+    ranking = rank_views(names, result.params, fisher, Fc)
+    print(f"candidate views, each as one more target at {target_spp} spp (standard errors from the targets' noise, "
+          f"relative units; the worst-determined combination's with these views {ranking[0]['worst_se_before']:.3g}):")
+    for r in ranking:
+        print(f"  {r['view']}: worst {r['worst_se']:.3g} ({r['shrink']:.2f}x smaller, along "
+              f"{r['worst_combination']}); " + ", ".join(f"{n} {x:.3g}" for n, x in r["se"].items()))
+    return ranking
 
 
 def print_table(result, truth: dict) -> None:

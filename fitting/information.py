@@ -138,3 +138,37 @@ def instead(names, values, fisher, loose) -> dict:
             out[n] = (f"{n} is not pinned down, alone or in any combination the views determine (best standard "
                       f"error of a combination with it: {_se_text(min(se_dir) if se_dir else np.inf)})")
     return out
+
+
+def rank_views(names, values, fisher, candidates: dict) -> list[dict]:
+    """Which candidate view would shrink the uncertainty most. `fisher`: the fit's Fisher information (parameters'
+    units; `C^-1` of its estimate); `candidates`: `{name: F_c}`, each candidate view's own Fisher information in the
+    same units (a target of that view with the noise assumed by the caller). For each candidate, the information
+    with it added, `F + F_c`, in relative units: the standard error of each parameter (`sqrt(diag((F + F_c)^-1))`)
+    and of the worst-determined combination (`1 / sqrt(smallest eigenvalue)`). Returns one dict per candidate,
+    smallest worst-determined standard error first: {"view", "se" (per parameter, relative units), "worst_se",
+    "worst_se_before", "shrink" (worst_se_before / worst_se), "worst_combination" (the combination after adding it)}.
+    A non-finite or singular sum gives infinite standard errors (ranked last)."""
+    names = list(names)
+    D = relative_scales(names, values)
+    F0 = 0.5 * (np.asarray(fisher, np.float64) + np.asarray(fisher, np.float64).T) * np.outer(D, D)
+
+    def worst(Fz):
+        if not np.all(np.isfinite(Fz)):
+            return np.inf, None
+        lam, V = np.linalg.eigh(Fz)
+        return (1.0 / np.sqrt(lam[0]) if lam[0] > 0 else np.inf), V[:, 0]
+
+    before, _ = worst(F0)
+    out = []
+    for view, Fc in candidates.items():
+        Fz = F0 + 0.5 * (np.asarray(Fc, np.float64) + np.asarray(Fc, np.float64).T) * np.outer(D, D)
+        w, v = worst(Fz)
+        try:
+            se = np.sqrt(np.abs(np.diag(np.linalg.inv(Fz)))) if np.isfinite(w) else np.full(len(names), np.inf)
+        except np.linalg.LinAlgError:
+            se = np.full(len(names), np.inf)
+        out.append({"view": view, "se": {n: float(x) for n, x in zip(names, se)}, "worst_se": float(w),
+                    "worst_se_before": float(before), "shrink": float(before / w) if w > 0 else float("inf"),
+                    "worst_combination": combination(names, v) if v is not None else None})
+    return sorted(out, key=lambda d: d["worst_se"])

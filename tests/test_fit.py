@@ -99,6 +99,9 @@ def files(tmp_path, target):
         (["--fit", "sigma_t", "--init", "sigma_t"], "expects name=value"),
         (["--value-spp-factor", "0"], "--value-spp-factor must be >= 1"),
         (["--rounds", "0"], "--rounds and --repeats must be >= 1"),
+        (["--candidates", "nope.json"], "--candidates"),
+        (["--candidates", "view.exr"], "expects scene files"),
+        (["--candidate-spp", "0"], "--candidate-spp must be >= 1"),
     ],
 )
 def test_bad_parameter_arguments(files, capsys, args, message):
@@ -160,3 +163,31 @@ def test_box_mean_averages_existing_neighbours_and_keeps_non_finite_values():
     my = box_mean(y, 1)[..., 0]
     assert np.isinf(my[0, 0])                                    # stays as it is
     assert my[1, 1] == pytest.approx(np.mean(np.delete(x[:3, :3].ravel(), 0)))  # and out of its neighbours' means
+
+
+def test_rank_views_adds_a_candidate_s_information_in_relative_units():
+    from fitting.information import rank_views
+
+    names, values = ["sigma_t", "g"], {"sigma_t": 0.5, "g": 0.6}
+    F = np.diag([1 / 0.005 ** 2, 1 / 0.05 ** 2])   # sigma_t 1% (relative), g 0.05: g is the worst determined
+    ranking = rank_views(names, values, F, {"pins g": np.diag([0.0, 1 / 0.01 ** 2]),
+                                            "pins sigma_t": np.diag([1 / 0.001 ** 2, 0.0]),
+                                            "the same again": F})
+    assert [r["view"] for r in ranking] == ["pins g", "the same again", "pins sigma_t"]
+    best = ranking[0]
+    assert best["worst_se_before"] == pytest.approx(0.05)
+    assert best["se"]["g"] == pytest.approx(1 / np.sqrt(1 / 0.05 ** 2 + 1 / 0.01 ** 2))
+    assert best["se"]["sigma_t"] == pytest.approx(0.01)          # 0.005 of 0.5
+    assert ranking[1]["shrink"] == pytest.approx(np.sqrt(2.0))    # twice the information
+    assert ranking[2]["shrink"] == pytest.approx(1.0) and ranking[2]["worst_combination"] == "g"
+
+
+def test_candidate_fisher_is_symmetric_psd_and_scales_with_the_target_s_samples():
+    from fitting.core import candidate_fisher
+
+    scene, key = _scene(), jax.random.key(5)
+    F1 = candidate_fisher(scene, ["sigma_t", "g"], TRUTH, 16, 512, key)
+    F2 = candidate_fisher(scene, ["sigma_t", "g"], TRUTH, 16, 1024, key)   # the same renders, twice the samples
+    assert np.all(np.isfinite(F1)) and np.allclose(F1, F1.T)
+    assert np.all(np.linalg.eigvalsh(F1) >= -1e-9 * np.abs(F1).max()) and np.trace(F1) > 0
+    np.testing.assert_allclose(F2, 2.0 * F1, rtol=1e-6)
