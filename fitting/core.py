@@ -584,7 +584,8 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
             # also in the previous round's noise (scaled to this round's samples): where this round's normal matrix
             # is nearly singular (two noisy Jacobians), its own C_step is as inflated as its step, and the length in
             # it stays small (measured: the main job's first averaging round, seed 4, went from g 0.56 to 0.04 as a
-            # step of 3.3 of its own standard errors, 53 of the previous round's)
+            # step of 3.3 of its own standard errors; with this and the Jacobian-conditional sandwich it reads 47 and
+            # is rejected)
             C_prev, K_prev = state["C_R_prev"]
             length = max(length, _mahalanobis(step, 2.0 * C_prev * (K_prev / K)))
         if reject and length > cfg.max_step_se and not state.get("rejected") and not state["warm_up"]:
