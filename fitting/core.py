@@ -672,8 +672,7 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig, l
         rounds += 1
         y_prev = np.asarray(y, np.float64)
         stepped = None
-        if use_avg and (phase == "average" or (K_split >= 2 and cfg.first_round == "split") or
-                        (r >= 1 and K_split >= 2)):
+        if use_avg and (phase == "average" or (K_split >= 2 and (r >= 1 or cfg.first_round == "split"))):
             if cfg.noise_weights and state["noise"]:  # from the earlier rounds' renders only: independent of
                 wvec = gls_weights()                   # this round's residual (round 0: equal weights)
             if phase == "average":
