@@ -365,9 +365,10 @@ def free_flight(tr: Tracer, state: PathState, hit: Hit, U) -> Segment:
     s = jnp.minimum(hit.t, med.extent)
     eqs, t_eq = [], []
     if tr.equiangular:
+        a, b = med.fog_interval(o, d, s)  # (0, s) for fog that fills space
         for j, light in enumerate(tr.scene.point_lights):
             t0, t1 = light.lit_interval(o, d)
-            e = equiangular_setup(light.position, o, d, jnp.maximum(0.0, t0), jnp.minimum(s, t1))
+            e = equiangular_setup(light.position, o, d, jnp.maximum(a, t0), jnp.minimum(b, t1))
             eqs.append(e)
             t_eq.append(equiangular_sample(e, U[ly.equiangular[j]], s))
     fl = tr.sampler.sample_free_flight(o, d, s, hit.found, state.in_medium, U[ly.free_flight], U[ly.channel])

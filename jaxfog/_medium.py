@@ -71,7 +71,8 @@ class FlightSample(NamedTuple):
 
 
 class AbstractMedium(eqx.Module):
-    """A participating medium filling all space outside the objects (the camera is inside it).
+    """A participating medium filling all space outside the objects, or (where the medium has `bounds`) an
+    axis-aligned box of it.
 
     Methods are called either on the medium (weights, transmittance, scattering) or on the *sampler*, a medium of
     the same kind whose values are the sampling parameters (`sample_free_flight`, `free_flight_pdf`, its `phase`'s
@@ -113,6 +114,11 @@ class AbstractMedium(eqx.Module):
     def scattering(self, p) -> Float[Array, "3"]:
         """Scattering coefficient `sigma_s` at the point `p`, RGB, 1/scene unit."""
 
+    def fog_interval(self, o, d, s) -> tuple[Float[Array, ""], Float[Array, ""]]:
+        """The part `[a, b]` of the segment `[0, s]` where there is fog (`a >= b`: none); the whole segment for a
+        medium that fills space. The tracer clips its equiangular samples to it."""
+        return 0.0, s
+
 
 def check_phase_and_extent(owner: str, phase, extent) -> None:
     """A medium's `phase` is a phase function and its `extent` (static) a finite number > 0 (scene units)."""
@@ -131,6 +137,11 @@ class HomogeneousMedium(AbstractMedium):
     - `phase`: the phase function (any `AbstractPhaseFunction`; `HenyeyGreenstein(g)` in the shipped scenes).
     - `extent`: static; a ray that travels this far (scene units) without meeting a surface leaves the fog.
       Default 1000: light scattered beyond it is below `sigma_s * I / extent` and negligible for the shipped scenes.
+    - `bounds`: `None` (default: the fog fills space) or `(box_min, box_max)`, two 3-vectors in scene units with
+      `box_min < box_max`: the fog fills only that axis-aligned box (Mitsuba's medium inside a `cube` with a `null`
+      BSDF); outside it rays travel in vacuum. Camera, lights and surfaces may be inside or outside the box. Glass
+      objects must lie wholly inside or wholly outside it. Structure: a medium with bounds compiles the box test,
+      one without compiles none.
     - `spectral_mis`: static; sample distances with one-sample spectral MIS over the three channels (module
       docstring); False samples every channel at the smallest one's rate (`sampling_extinction`, the former scheme,
       kept for the variance comparison of docs/results/chromatic.md). Default (None): True, in Python and in scene
@@ -145,13 +156,15 @@ class HomogeneousMedium(AbstractMedium):
     phase: AbstractPhaseFunction
     extent: float = eqx.field(static=True, default=1000.0)
     spectral_mis: bool = eqx.field(static=True, default=True)
+    bounds: tuple[Float[Array, "3"], Float[Array, "3"]] | None = None
 
-    def __init__(self, sigma_t, albedo, phase, extent=1000.0, spectral_mis=None):
+    def __init__(self, sigma_t, albedo, phase, extent=1000.0, spectral_mis=None, bounds=None):
         self.sigma_t = sigma_t
         self.albedo = albedo
         self.phase = phase
         self.extent = extent
         self.spectral_mis = True if spectral_mis is None else bool(spectral_mis)
+        self.bounds = None if bounds is None else check_bounds("HomogeneousMedium", bounds)
 
     def __check_init__(self):
         check_range("HomogeneousMedium", "sigma_t", self.sigma_t, 0.0)
@@ -170,7 +183,23 @@ class HomogeneousMedium(AbstractMedium):
             raise AttributeError(f"the medium's phase function is {type(self.phase).__name__}, which has no g")
         return self.phase.g
 
+    # A bounded medium runs the same formulas on the fog's part [a, a + L] of the segment (`_fog_part`): distances
+    # inside it are shifted by a, and a segment that misses the box has L = 0 and no medium branch.
+    def fog_interval(self, o, d, s):
+        if self.bounds is None:
+            return 0.0, s
+        t0, t1 = box_interval(self.bounds[0], self.bounds[1], o, d)
+        return jnp.clip(t0, 0.0, s), jnp.clip(t1, 0.0, s)
+
+    def _fog_part(self, o, d, s):
+        """`(a, L)`: where the fog starts on the segment and its length there (`(0, s)` without bounds)."""
+        a, b = self.fog_interval(o, d, s)
+        return a, (jnp.maximum(b - a, 0.0) if self.bounds is not None else s)
+
     def sample_free_flight(self, o, d, s, ends_on_surface, active, u, u_channel) -> FlightSample:
+        a, s = self._fog_part(o, d, s)
+        if self.bounds is not None:
+            active = active & (s > 0)
         q_max = jnp.where(ends_on_surface, Q_MAX_SURFACE, 1.0)
         if self.spectral_mis:
             sh = channel_rates(self.sigma_t)
@@ -180,28 +209,80 @@ class HomogeneousMedium(AbstractMedium):
             sh_t = sampling_extinction(self.sigma_t)
             q, log1mq = branch_probability(sh_t, s, q_max)
         q = jnp.where(active, q, 0.0)
+        if self.bounds is not None:  # no fog on the segment: the surface is reached with weight exactly 1
+            log1mq = jnp.where(s > 0, log1mq, 0.0)
         scattered = active & (u < q)
         x = jnp.where(scattered, u / jnp.where(scattered, q, 1.0), 0.0)  # double where: x >= 1 gives log(< 0)
-        return FlightSample(sample_truncated_exponential(x, sh_t, s), scattered, q, log1mq)
+        return FlightSample(a + sample_truncated_exponential(x, sh_t, s), scattered, q, log1mq)
 
     def free_flight_pdf(self, o, d, s, q, t):
+        a, s = self._fog_part(o, d, s)
+        inside = None if self.bounds is None else (t >= a) & (t <= a + s) & (s > 0)
+        if inside is not None:  # double where: outside the fog (or with none on the segment) the density is 0
+            t, s = jnp.where(inside, t - a, 0.0), jnp.where(inside, s, 1.0)
         if self.spectral_mis:
-            return mis_medium_pdf(t, channel_rates(self.sigma_t), s, q)
-        return medium_pdf(t, sampling_extinction(self.sigma_t), s, q)
+            p = mis_medium_pdf(t, channel_rates(self.sigma_t), s, q)
+        else:
+            p = medium_pdf(t, sampling_extinction(self.sigma_t), s, q)
+        return p if inside is None else jnp.where(inside, p, 0.0)
 
     def collision_weight(self, sampler, o, d, s, q, t):
+        a, s = self._fog_part(o, d, s)  # t comes from this segment's own free flight: inside the fog
+        if self.bounds is not None:
+            ok = s > 0
+            t, s = jnp.where(ok, t - a, 0.0), jnp.where(ok, s, 1.0)
         if sampler.spectral_mis:
             return mis_medium_weight(self.sigma_t, self.sigma_s, channel_rates(sampler.sigma_t), t, s, q)
         return medium_weight(self.sigma_t, self.sigma_s, sampling_extinction(sampler.sigma_t), t, s, q)
 
     def surface_weight(self, o, d, s, log_one_minus_q):
-        return surface_weight(self.sigma_t, s, log_one_minus_q)
+        return surface_weight(self.sigma_t, self._fog_part(o, d, s)[1], log_one_minus_q)
 
     def transmittance(self, o, d, t):
-        return transmittance(self.sigma_t, t)
+        if self.bounds is None:
+            return transmittance(self.sigma_t, t)
+        t0, t1 = box_interval(self.bounds[0], self.bounds[1], o, d)
+        # the fog's length on [0, t]; t may be inf, the box's exit distance is finite (d is a unit vector)
+        return transmittance(self.sigma_t, jnp.maximum(jnp.minimum(t, t1) - jnp.maximum(t0, 0.0), 0.0))
 
     def scattering(self, p):
-        return self.sigma_s
+        if self.bounds is None:
+            return self.sigma_s
+        return jnp.where(inside_box(self.bounds[0], self.bounds[1], p), self.sigma_s, 0.0)
+
+
+def check_bounds(owner: str, bounds) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+    """`bounds` as two float32 3-vectors `(box_min, box_max)`: finite, `box_min < box_max` in every axis."""
+    import numpy as np
+
+    try:
+        lo, hi = bounds
+        lo_np, hi_np = (np.asarray(x, dtype=np.float64) for x in (lo, hi))
+    except (TypeError, ValueError):
+        raise ValueError(f"{owner}.bounds must be (box_min, box_max), two 3-vectors, got {bounds!r}") from None
+    if lo_np.shape != (3,) or hi_np.shape != (3,) or not (np.all(np.isfinite(lo_np)) and np.all(np.isfinite(hi_np))):
+        raise ValueError(f"{owner}.bounds must be two finite 3-vectors, got {bounds!r}")
+    if not np.all(lo_np < hi_np):
+        raise ValueError(f"{owner}.bounds: box_min {lo_np.tolist()} must be below box_max {hi_np.tolist()} in every axis")
+    return jnp.asarray(lo, jnp.float32), jnp.asarray(hi, jnp.float32)
+
+
+def box_interval(box_min, box_max, o, d) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """Ray parameters `(t0, t1)` where the line `o + t d` enters and leaves the axis-aligned box (slab method;
+    `t0 > t1`: it misses). Scene units. An axis with `d = 0` (double where, no 0 * inf) leaves the interval
+    unbounded if `o` lies within the slab and empty otherwise."""
+    nz = d != 0
+    inv = 1.0 / jnp.where(nz, d, 1.0)
+    ta, tb = (box_min - o) * inv, (box_max - o) * inv
+    inside = (o >= box_min) & (o <= box_max)
+    near = jnp.where(nz, jnp.minimum(ta, tb), jnp.where(inside, -jnp.inf, jnp.inf))
+    far = jnp.where(nz, jnp.maximum(ta, tb), jnp.where(inside, jnp.inf, -jnp.inf))
+    return jnp.max(near), jnp.min(far)
+
+
+def inside_box(box_min, box_max, p) -> Bool[Array, ""]:
+    """Whether the point `p` lies in the closed box."""
+    return jnp.all((p >= box_min) & (p <= box_max))
 
 
 def sampling_extinction(sigma_t: Float[Array, "3"]) -> Float[Array, ""]:

@@ -6,7 +6,9 @@ renders it (it needs Mitsuba). How each part maps is in `docs/conventions.md` ("
 - camera: `perspective` with `fov_axis = "x"`, `to_world = look_at(origin, target, up)`, `hdrfilm` with a box filter;
 - medium: `homogeneous` (`sigma_t`, `albedo`; phase `hg` with `g`, `rayleigh`, two-term HG as `blendphase` of two
   `hg`, fog droplets as a `tabphase` of jaxfog's own pdf; Draine alone is refused) filling a cube of side `extent`
-  around the camera with a `null` BSDF; the sensor's medium and every shape's exterior medium;
+  around the camera with a `null` BSDF; the sensor's medium and every shape's exterior medium. Bounded fog
+  (`bounds`): the cube is the box; the sensor's medium only if the camera is inside it, and only glass objects
+  inside it get the fog as exterior (a reflecting surface keeps the ray's medium);
 - rectangles: `rectangle` with `to_world` columns `(edge_u / 2, edge_v / 2, normal, center)`, so Mitsuba's local +z
   normal is jaxfog's front normal `normalize(cross(edge_u, edge_v))`; spheres: `sphere`; meshes: `ply` / `obj`
   (`filename`, `face_normals` unless `smooth`, `to_world`: the same matrix);
@@ -247,10 +249,22 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
         out["fog"] = {"type": "homogeneous", "albedo": _albedo(med["albedo"]), "phase": _phase(med),
                       **_extinction(med["sigma_t"])}
         fog_ref = {"type": "ref", "id": "fog"}
-        cube = np.diag([float(med["extent"]) / 2] * 3 + [1.0])
-        cube[:3, 3] = _vec(cam["origin"])
+        box = med.get("bounds")
+        if box is None:  # fog filling space: a cube of side `extent` around the camera
+            cube = np.diag([float(med["extent"]) / 2] * 3 + [1.0])
+            cube[:3, 3] = _vec(cam["origin"])
+        else:
+            lo, hi = _vec(box["min"]), _vec(box["max"])
+            cube = np.diag(list((hi - lo) / 2) + [1.0])
+            cube[:3, 3] = (lo + hi) / 2
         out["fog_boundary"] = {"type": "cube", "to_world": to_world(cube), "bsdf": {"type": "null"},
                                "interior": fog_ref}
+        if box is not None:
+            in_fog = _inside(box)
+            if not in_fog(cam["origin"]):
+                fog_ref = None  # the camera starts in vacuum; rays enter the fog through the cube
+            else:
+                fog_ref = {"type": "ref", "id": "fog"}
     sensor = {
         "type": "perspective",
         "fov": float(cam["fov"]),
@@ -278,7 +292,15 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
         else:
             raise ValueError(f"to_mitsuba: no Mitsuba shape for shapes.{i}.type {s['type']!r}")
         shape["bsdf"] = _bsdf(s["bsdf"], f"shapes.{i}")
-        if fog_ref is not None:
+        if med is not None and med.get("bounds") is not None:
+            # bounded fog: a reflecting surface keeps the ray's medium (no transition); a glass object is a medium
+            # transition and must know what surrounds it (conventions: wholly inside or outside the box)
+            if s["bsdf"]["type"] == "glass":
+                if s["type"] == "mesh":
+                    raise ValueError(f"to_mitsuba: shapes.{i}: a glass mesh in bounded fog is not exported")
+                if _inside(med["bounds"])(s["center"]):
+                    shape["exterior"] = {"type": "ref", "id": "fog"}
+        elif fog_ref is not None:
             shape["exterior"] = fog_ref
         out[f"shape_{i}"] = shape
 
@@ -303,12 +325,18 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
                 "bsdf": {"type": "diffuse", "reflectance": _rgb_tex(0.0)},
                 "emitter": {"type": "area", "radiance": _rgb_tex(lt["radiance"])},
             }
-            if fog_ref is not None:
+            if fog_ref is not None and (med is None or med.get("bounds") is None):
                 shape["exterior"] = fog_ref
             out[f"light_{i}"] = shape
         else:
             raise ValueError(f"to_mitsuba: no Mitsuba emitter for lights.{i}.type {kind!r}")
     return out
+
+
+def _inside(box):
+    """A test of whether a point lies in the closed box `{"min": ..., "max": ...}`."""
+    lo, hi = _vec(box["min"]), _vec(box["max"])
+    return lambda p: bool(np.all(_vec(p) >= lo) and np.all(_vec(p) <= hi))
 
 
 # ------------------------------------------------------------------------------------------------ with Mitsuba

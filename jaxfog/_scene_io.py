@@ -196,7 +196,7 @@ def _module_default(cls, name: str):
     raise KeyError(name)  # pragma: no cover
 
 
-def _build_homogeneous(sigma_t, albedo, g, phase, extent):
+def _build_homogeneous(sigma_t, albedo, g, phase, extent, bounds):
     import jax.numpy as jnp
 
     from ._medium import HomogeneousMedium
@@ -206,7 +206,8 @@ def _build_homogeneous(sigma_t, albedo, g, phase, extent):
     # array would compile a second program).
     if phase is None:
         phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
-    return HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=phase, extent=float(extent))
+    box = None if bounds is None else (bounds["min"], bounds["max"])
+    return HomogeneousMedium(sigma_t=sigma_t, albedo=albedo, phase=phase, extent=float(extent), bounds=box)
 
 
 def _build_height(sigma_0, height_scale, base_height, albedo, g, phase, up, extent):
@@ -219,6 +220,17 @@ def _build_height(sigma_0, height_scale, base_height, albedo, g, phase, up, exte
         phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
     return HeightFog(sigma_0=sigma_0, height_scale=height_scale, base_height=base_height, albedo=albedo, phase=phase,
                      up=up, extent=float(extent))
+
+
+def _min_below_max(values: dict, path: str) -> None:
+    """A box's `min` corner is below its `max` corner on every axis."""
+    if not all(a < b for a, b in zip(values["min"], values["max"])):
+        raise _Invalid(_join(path, "max"), f"{values['max']} is not above min {values['min']} on every axis",
+                       "expected min < max in x, y and z")
+
+
+BOX = Section({"min": Field(VEC3), "max": Field(VEC3)}, checks=(_min_below_max,))
+"""An axis-aligned box, `{"min": [x, y, z], "max": [x, y, z]}` in scene units."""
 
 
 def _phase_or_g(values: dict, path: str) -> None:
@@ -381,6 +393,7 @@ MEDIA = {
             "g": Field(NUMBER, default=None, range=Range(-1, 1, lo_open=True, hi_open=True)),
             "phase": Field(Typed(PHASES), default=None),
             "extent": Field(NUMBER, default=_module_default(HomogeneousMedium, "extent"), range=POSITIVE),
+            "bounds": Field(BOX, default=None),
         },
         checks=(_phase_or_g,),
         build=_build_homogeneous,
