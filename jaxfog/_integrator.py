@@ -122,6 +122,12 @@ def sampling_medium(medium: AbstractMedium | None, options: SamplingOptions, pro
     if type(proposal) is not type(medium):
         raise TypeError(f"proposal must be a {type(medium).__name__} like the scene's medium, "
                         f"got {type(proposal).__name__}")
+    box = getattr(medium, "bounds", None)
+    if (box is None) != (getattr(proposal, "bounds", None) is None):
+        raise ValueError("proposal must have bounds exactly where the scene's medium has them (its values sample; "
+                         "the fog's box is the scene's)")
+    if box is not None:  # the proposal's values sample the distances; the fog's geometry is the scene's
+        proposal = eqx.tree_at(lambda m: m.bounds, proposal, box)
     return jax.lax.stop_gradient(proposal)
 
 

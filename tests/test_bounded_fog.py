@@ -160,7 +160,7 @@ def test_absorbing_box_over_a_lit_floor_is_beer_lambert(stats):
     R = np.array([0.7, 0.5, 0.3])
     scene = jf.Scene(camera=FLOOR_CAM.build(), shapes=(make_floor(R, half=30.0),),
                      lights=(jf.PointLight(*POINT),),
-                     medium=_medium(sigma_t=sig, albedo=0.0), max_depth=3)
+                     medium=_medium(sigma_t=sig, albedo=0.0), max_depth=2)
     o, dirs, w = FLOOR_CAM.rays(5)
     ref = np.zeros((FLOOR_CAM.height, FLOOR_CAM.width, 3))
     for r in range(FLOOR_CAM.height):
@@ -217,7 +217,7 @@ def test_single_scattering_in_a_box_matches_quadrature(stats, cam):
 
 def test_a_box_around_everything_changes_nothing_but_rounding():
     """A box that holds every path of the scene renders the unbounded fog's image: with `extent` 2 every segment
-    stays within 16 units of the camera (8 segments), inside a box of +-50, so the fog's part of each segment is all
+    stays within 8 units of the camera (4 segments), inside a box of +-50, so the fog's part of each segment is all
     of it (a = 0, L = s) and the same random numbers make the same decisions. The two programs differ in their
     operations, so XLA may round differently: 1e-4 relative per pixel, at most 1% of the pixels beyond (a flipped
     branch)."""
@@ -225,7 +225,8 @@ def test_a_box_around_everything_changes_nothing_but_rounding():
     from jaxfog._scene_io import scene_from_dict
 
     data = spot_fog_dict()
-    data["camera"]["width"] = data["camera"]["height"] = 16
+    data["camera"]["width"] = data["camera"]["height"] = 12
+    data["integrator"]["max_depth"] = 4
     data["medium"]["extent"] = 2.0
     plain = scene_from_dict(data, source="plain").scene
     data["medium"]["bounds"] = {"min": [-50, -50, -50], "max": [50, 50, 50]}
@@ -244,15 +245,18 @@ def test_bounded_render_has_finite_derivatives_at_hard_values():
 
     data = spot_fog_dict()
     data["camera"]["width"] = data["camera"]["height"] = 6
+    data["integrator"]["max_depth"] = 4
     data["medium"]["bounds"] = {"min": [-3, -0.5, -3], "max": [3, 2.4, 3]}
     base = scene_from_dict(data, source="box").scene
-    for sig, alb, g in [(0.0, 0.9, 0.6), (40.0, 0.9, 0.6), (0.5, 0.0, 0.0), (0.5, 1.0, 0.999), (0.5, 0.9, -0.999)]:
-        def image(p):
-            med = jf.HomogeneousMedium(p[0], alb, jf.HenyeyGreenstein(p[1]), bounds=base.medium.bounds)
-            return jf.render(jf.Scene(camera=base.camera, shapes=base.shapes, lights=base.lights, medium=med,
-                                      max_depth=base.max_depth), jax.random.key(2), 4)
 
-        val, jac = jax.jvp(image, (jnp.asarray([sig, g], jnp.float32),), (jnp.asarray([1.0, 0.3], jnp.float32),))
+    def image(p):  # one compiled program: all three values traced
+        med = jf.HomogeneousMedium(p[0], p[1], jf.HenyeyGreenstein(p[2]), bounds=base.medium.bounds)
+        return jf.render(jf.Scene(camera=base.camera, shapes=base.shapes, lights=base.lights, medium=med,
+                                  max_depth=base.max_depth), jax.random.key(2), 4)
+
+    f = jax.jit(lambda p, v: jax.jvp(image, (p,), (v,)))
+    for sig, alb, g in [(0.0, 0.9, 0.6), (40.0, 0.9, 0.6), (0.5, 0.0, 0.0), (0.5, 1.0, 0.999), (0.5, 0.9, -0.999)]:
+        val, jac = f(jnp.asarray([sig, alb, g], jnp.float32), jnp.asarray([1.0, 0.0, 0.3], jnp.float32))
         assert np.all(np.isfinite(np.asarray(val))) and np.all(np.isfinite(np.asarray(jac))), (sig, alb, g)
 
 
@@ -270,3 +274,34 @@ def test_mitsuba_export_puts_the_cube_at_the_box():
     assert all("exterior" not in v for k, v in d.items() if k.startswith("shape_"))  # reflectors keep the medium
     data["medium"]["bounds"] = {"min": [-3, -0.5, -3], "max": [3, 2.4, 5]}
     assert jf.to_mitsuba(data)["sensor"]["medium"] == {"type": "ref", "id": "fog"}
+
+
+def _box_scene(size=8, depth=3):
+    from helpers import spot_fog_dict
+    from jaxfog._scene_io import scene_from_dict
+
+    data = spot_fog_dict()
+    data["camera"]["width"] = data["camera"]["height"] = size
+    data["integrator"]["max_depth"] = depth
+    data["medium"]["bounds"] = {"min": [-3, -0.5, -3], "max": [3, 2.4, 3]}
+    return scene_from_dict(data, source="box").scene
+
+
+def test_proposal_without_the_box_is_refused():
+    scene = _box_scene()
+    med = scene.medium
+    with pytest.raises(ValueError, match="bounds"):
+        jf.render(scene, jax.random.key(9), 4, estimator="proposal",
+                  proposal=jf.HomogeneousMedium(med.sigma_t, med.albedo, med.phase))
+
+
+@pytest.mark.slow
+def test_proposal_takes_the_scene_medium_box():
+    """estimator="proposal": the proposal's values sample, the box is the scene's. A proposal at the medium's own
+    values (with another box) renders the detached estimator's image (the same sampler)."""
+    scene = _box_scene()
+    med, key = scene.medium, jax.random.key(9)
+    same = jf.HomogeneousMedium(med.sigma_t, med.albedo, med.phase, bounds=((-9, -9, -9), (9, 9, 9)))
+    a = np.asarray(jf.render(scene, key, 4, estimator="proposal", proposal=same))
+    b = np.asarray(jf.render(scene, key, 4))
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7 * b.max())
