@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._fields import check_range, rgb
+from ._fields import check_range, concrete, rgb
 from ._math import finite_or, one_minus_exp_neg
 from ._phase import AbstractPhaseFunction, HenyeyGreenstein
 from ._sampling import sample_truncated_exponential
@@ -257,7 +257,13 @@ def check_bounds(owner: str, bounds) -> tuple[Float[Array, "3"], Float[Array, "3
 
     try:
         lo, hi = bounds
-        lo_np, hi_np = (np.asarray(x, dtype=np.float64) for x in (lo, hi))
+    except (TypeError, ValueError):
+        raise ValueError(f"{owner}.bounds must be (box_min, box_max), two 3-vectors, got {bounds!r}") from None
+    lo_c, hi_c = concrete(lo), concrete(hi)
+    if lo_c is None or hi_c is None:  # traced (e.g. a medium rebuilt inside jit): checked where it was made
+        return jnp.asarray(lo, jnp.float32), jnp.asarray(hi, jnp.float32)
+    try:
+        lo_np, hi_np = (np.asarray(x, dtype=np.float64) for x in (lo_c, hi_c))
     except (TypeError, ValueError):
         raise ValueError(f"{owner}.bounds must be (box_min, box_max), two 3-vectors, got {bounds!r}") from None
     if lo_np.shape != (3,) or hi_np.shape != (3,) or not (np.all(np.isfinite(lo_np)) and np.all(np.isfinite(hi_np))):

@@ -35,7 +35,8 @@ REPO = os.path.dirname(os.path.dirname(HERE))
 REL = os.path.relpath(HERE, REPO)  # data_synthetic/foreign
 SEED0 = 20_000
 SPP = 2048
-EXTRA_SEEDS = {"spot_sideways_power__spot_sideways_near": SEED0 + 14}
+EXTRA_SEEDS = {"spot_sideways_power__spot_sideways_near": SEED0 + 14, "box_fog__box_side": SEED0 + 15,
+               "box_fog__box_low": SEED0 + 16}
 """Views added after the first 13 targets (seeds SEED0 + 1 ... + 13 in order) keep the earlier targets' seeds."""
 
 GREY = {"albedo": 0.9}
@@ -66,6 +67,10 @@ CASES = [
     dict(name="spot_thin_forward", description="benchmark geometry, thin strongly forward fog (g 0.85), two views",
          views=["spot_side", "spot_low"], truth={"sigma_t": 0.2, "g": 0.85, **GREY},
          fit=["sigma_t", "g"], init={"sigma_t": 0.35, "g": 0.5}, determined=["sigma_t", "g"], expect="pass"),
+    dict(name="box_fog", description="benchmark geometry with the fog confined to a box below the spot light "
+         "(medium.bounds; light and camera in vacuum), two views", views=["box_side", "box_low"],
+         truth={"sigma_t": 0.8, "g": 0.5, **GREY},
+         fit=["sigma_t", "g"], init={"sigma_t": 0.5, "g": 0.2}, determined=["sigma_t", "g"], expect="pass"),
     dict(name="chromatic_grey", description="chromatic haze (sigma_t 0.3 / 0.5 / 0.8 in R / G / B) fitted with the "
          "grey model: must fail (the model cannot explain it)", views=["spot_side", "spot_low"],
          truth={"sigma_t[r]": 0.3, "sigma_t[g]": 0.5, "sigma_t[b]": 0.8, "g": 0.5, **GREY},
