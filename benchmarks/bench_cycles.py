@@ -160,13 +160,15 @@ def spot_blend_matching(cutoff_deg: float, beam_deg: float) -> float:
     jaxfog: falloff 1 to the beam width, then linear in theta to 0 at the cutoff c, so the cone's power over the
     on-axis intensity is `2 pi (1 - (sin c - sin b) / (c - b))`. Cycles: `smoothstep((cos theta - cos c) / w)`
     with `w = (1 - cos c) blend`; a smoothstep integrates to half its width, so `2 pi (1 - cos c - w / 2)`. Equal
-    powers: `blend = 2 ((sin c - sin b) / (c - b) - cos c) / (1 - cos c)` (0 for b = c, a hard edge)."""
+    powers: `blend = 2 ((sin c - sin b) / (c - b) - cos c) / (1 - cos c)` (0 for b = c, a hard edge). Cycles'
+    blend is at most 1 (the smoothstep then spans the whole cone); a ramp too wide for that (about b < c / 2) gets 1,
+    the closest Cycles has, and a cone of less power."""
     c, b = math.radians(cutoff_deg), math.radians(beam_deg)
     if not 0.0 < b <= c < math.pi / 2:
         raise ValueError(f"need 0 < beam_width <= cutoff_angle < 90 degrees, got {beam_deg}, {cutoff_deg}")
     if c - b < 1e-9:
         return 0.0
-    return 2.0 * ((math.sin(c) - math.sin(b)) / (c - b) - math.cos(c)) / (1.0 - math.cos(c))
+    return min(2.0 * ((math.sin(c) - math.sin(b)) / (c - b) - math.cos(c)) / (1.0 - math.cos(c)), 1.0)
 
 
 def cycles_bounces(max_depth: int) -> dict:
