@@ -45,9 +45,11 @@ The measurement (`run_benchmark`):
    screen's). jaxfog then renders `draws` independent images at 1, 2, 3, ... spp (each timed as one `jaxfog.render`
    call after compilation) until the median of its corrected relative RMSEs against its own reference is at or
    below the target. Ratio = jaxfog's mean time per image / Cycles' mean time per image. jaxfog's ms/spp is timed
-   right before and right after Cycles' target images, under the same load; `ratio_adjacent` = that spp x the mean
-   of those two ms/spp / Cycles' time per image (the load of a shared machine drifts over the minutes the search
-   takes).
+   right before and right after Cycles' target images, under the same load (a program of one sample layer per
+   batch, 8 spp); `ratio_adjacent` = the spp found x the mean of those two ms/spp / Cycles' time per image. It
+   differs from the ratio by the load's drift over the minutes the search takes, and by `render`'s padding: its
+   default batch (65536 paths) is 4 sample layers at 128 x 128, and a last, partial batch is traced in full, so
+   9 spp costs as much as 12.
 
 Each renderer against its own reference, so the scenes need not match photometrically; their image means are
 printed side by side (the ratio, with standard errors), not claimed equal.
@@ -479,7 +481,7 @@ def run_benchmark(cfg: Config, out: Path, python: str, version: str, fresh_ref: 
     result["jaxfog_ms_per_spp"] = {"before": 1e3 * t_before, "after": 1e3 * t_after}
     log(f"jaxfog to Cycles' median error {st['median']:.3f} ({cfg.draws} images each)")
     eq = equal_error(jax_draws, jref, st["median"], cfg.draws, t_cyc, cfg.max_jax_spp, log=log)
-    if eq["reached"]:  # the same with jaxfog's ms/spp timed right before and after Cycles' images (same load)
+    if eq["reached"]:  # with jaxfog's ms/spp timed right before and after Cycles' images (no padding, same load)
         eq["ratio_adjacent"] = eq["spp"] * 0.5e-3 * (result["jaxfog_ms_per_spp"]["before"]
                                                     + result["jaxfog_ms_per_spp"]["after"]) / t_cyc
     result["equal_error"] = eq
