@@ -330,6 +330,26 @@ def jaxfog_render_fn(paths_per_call: int) -> RenderFn:
     return fn
 
 
+def timed_draws(scene, seed: int, strategy: dict) -> Callable[[int, int], tuple[list, list]]:
+    """`draws(spp, n)`: `n` independent jaxfog images of `spp` spp as `jaxfog.render(scene, key, spp)` makes them
+    (its default batching), each timed as one call after a compiling call (a program per spp below a full batch),
+    and their wall times (s). Keys `8_000_000 + 100_000 seed + 1000 spp + i`."""
+    from jaxfog._render import DEFAULT_BATCH_PATHS
+
+    render_default = jaxfog_render_fn(DEFAULT_BATCH_PATHS)
+
+    def draws(spp: int, n: int):
+        render_default(scene, 8_999_999, spp, **strategy)
+        imgs, times = [], []
+        for i in range(n):
+            t0 = time.perf_counter()
+            imgs.append(render_default(scene, 8_000_000 + 100_000 * seed + 1000 * spp + i, spp, **strategy))
+            times.append(time.perf_counter() - t0)
+        return imgs, times
+
+    return draws
+
+
 def xla_memory(scene, strategy: dict, paths_per_call: int) -> dict | None:
     """XLA's `memory_analysis()` of the compiled batch that `render` runs (hits the in-memory compile cache); it
     lowers the private `jaxfog._render._render_items`, so it reports `{"error": ...}` where those internals have
@@ -1001,20 +1021,7 @@ def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.0
                 fn(sf.scene, 9_000_000 + cfg.seed, spp_t, **STRATEGIES[DEFAULT_STRATEGY])
                 return (time.perf_counter() - t0) / spp_t
 
-            from jaxfog._render import DEFAULT_BATCH_PATHS
-
-            render_default = jaxfog_render_fn(DEFAULT_BATCH_PATHS)  # what `jaxfog.render(scene, key, spp)` does
-
-            def jax_draws(spp, n):
-                kw = STRATEGIES[DEFAULT_STRATEGY]
-                render_default(sf.scene, 8_999_999, spp, **kw)  # compiles (a program per spp below a full batch)
-                imgs, times = [], []
-                for i in range(n):
-                    t0 = time.perf_counter()
-                    imgs.append(render_default(sf.scene, 8_000_000 + 100_000 * cfg.seed + 1000 * spp + i, spp, **kw))
-                    times.append(time.perf_counter() - t0)
-                return imgs, times
-
+            jax_draws = timed_draws(sf.scene, cfg.seed, STRATEGIES[DEFAULT_STRATEGY])
             result["mitsuba"] = mitsuba_compare(name, cfg, refs[name], result["scenes"][name], cache, log=log,
                                                 jax_time_per_spp=jax_time_per_spp, jax_draws=jax_draws)
         else:

@@ -350,10 +350,7 @@ def error_stats(images, ref: dict) -> dict:
 # ================================================================================================= measurement
 def _jaxfog_side(sf, cfg: Config, cache_dir: Path, fresh: bool, log):
     """jaxfog's reference (`benchmarks.bench.reference_image`), a timer of ms/spp, and `draws(spp, n)`."""
-    import jax  # noqa: F401
-
     from benchmarks import bench
-    from jaxfog._render import DEFAULT_BATCH_PATHS
 
     n_pix = cfg.size * cfg.size
     fn = bench.jaxfog_render_fn(n_pix)  # as benchmarks.bench's strategy study (its reference cache key)
@@ -369,18 +366,7 @@ def _jaxfog_side(sf, cfg: Config, cache_dir: Path, fresh: bool, log):
         fn(sf.scene, 9_000_000 + cfg.seed, spp_t, **kw)
         return (time.perf_counter() - t0) / spp_t
 
-    render_default = bench.jaxfog_render_fn(DEFAULT_BATCH_PATHS)  # what `jaxfog.render(scene, key, spp)` does
-
-    def draws(spp: int, n: int):
-        render_default(sf.scene, 8_999_999, spp, **kw)  # compiles (a program per spp below a full batch)
-        imgs, times = [], []
-        for i in range(n):
-            t0 = time.perf_counter()
-            imgs.append(render_default(sf.scene, 8_000_000 + 100_000 * cfg.seed + 1000 * spp + i, spp, **kw))
-            times.append(time.perf_counter() - t0)
-        return imgs, times
-
-    return ref, time_per_spp, draws
+    return ref, time_per_spp, bench.timed_draws(sf.scene, cfg.seed, kw)
 
 
 def screen_settings(params: dict, cfg: Config, python: str, ref: dict, workdir: Path, log=print) -> dict:
