@@ -377,7 +377,11 @@ def free_flight(tr: Tracer, state: PathState, hit: Hit, U) -> Segment:
             e = equiangular_setup(light.position, o, d, jnp.maximum(a, t0), jnp.minimum(b, t1))
             eqs.append(e)
             t_eq.append(equiangular_sample(e, U[ly.equiangular[j]], s))
-    fl = tr.sampler.sample_free_flight(o, d, s, hit.found, state.in_medium, U[ly.free_flight], U[ly.channel])
+    # the surface branch's share is kept >= 1 - Q_MAX_SURFACE only on view segments (from the camera or a specular
+    # chain), where it lets the camera see surfaces behind thick fog; on the other segments it would multiply a long
+    # path's weight by albedo m / q > 1 at every vertex near a surface and make the weights heavy-tailed
+    cap = hit.found & state.specular
+    fl = tr.sampler.sample_free_flight(o, d, s, cap, state.in_medium, U[ly.free_flight], U[ly.channel])
     t = fl.t
     if tr.mix > 0:
         # the vertex distance is drawn from a mixture: free flight, or equiangular toward a light (the path then

@@ -53,7 +53,9 @@ Q_MIN = 0.05
 """Smallest probability of choosing the medium branch on a segment (no derivative; a variance/cost trade-off)."""
 
 Q_MAX_SURFACE = 0.75
-"""Largest probability of the medium branch on a segment that ends on a surface (variance trade-off, no bias)."""
+"""Largest probability of the medium branch on a view segment (from the camera or after a specular bounce) that ends
+on a surface (variance trade-off, no bias). The tracer applies it to view segments only: on the segments of long
+paths its weights `albedo m / q > 1` compound into heavy tails (docs/results/unbounded, section 4)."""
 
 SIGMA_HAT_MIN = 1e-6
 """Smallest sampling extinction (1/scene unit); below it the truncated exponential is uniform on [0, s] anyway."""
@@ -86,7 +88,8 @@ class AbstractMedium(eqx.Module):
     @abc.abstractmethod
     def sample_free_flight(self, o, d, s, ends_on_surface, active, u, u_channel) -> FlightSample:
         """On the sampler: choose the branch with `u` in [0, 1) and, for the medium branch, a distance in [0, s).
-        `ends_on_surface`: the segment ends on a surface (its branch gets probability >= 1 - Q_MAX_SURFACE);
+        `ends_on_surface`: the segment ends on a surface whose branch gets probability >= 1 - Q_MAX_SURFACE (the
+        tracer passes it for view segments only);
         `active`: the path is in the medium (outside glass objects; otherwise q = 0); `u_channel` in [0, 1): the
         spectral channel whose density draws `t` (RGB media; the branch itself must not depend on it, because the
         tracer gives the same uniform to a surface vertex's discrete BSDF choice, `Layout.channel`)."""
@@ -356,8 +359,8 @@ def branch_probability(
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """Probability `q` of the medium branch on a segment of finite length `s`, and `log(1 - q)`; never differentiated.
 
-    `q = clip(1 - exp(-sh s), Q_MIN, q_max)`. The integrator passes `q_max = Q_MAX_SURFACE` when the segment ends
-    on a surface, so that a surface behind optically thick fog is still reached by a fixed share of the paths (with
+    `q = clip(1 - exp(-sh s), Q_MIN, q_max)`. The integrator passes `q_max = Q_MAX_SURFACE` when a view segment
+    (from the camera or after a specular bounce) ends on a surface, so that a surface behind optically thick fog is still reached by a fixed share of the paths (with
     weight `exp(-sigma_t s) / (1 - q) < 1`) instead of by a rare, heavy one. `log(1 - q)` is exact (`-sh s`) where
     no clamp is active, so surface weights `exp(-sigma_t s) / (1 - q)` never underflow to 0/0 in deep fog.
     """
