@@ -242,6 +242,7 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
                        "rr_depth": int(data["integrator"].get("rr_depth", 5)) if max_depth == -1 else max_depth + 1000},
     }
     med = data.get("medium")
+    bounded = med is not None and med.get("bounds") is not None
     fog_ref = None
     if med is not None:
         if med.get("type", "homogeneous") != "homogeneous":
@@ -259,12 +260,8 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
             cube[:3, 3] = (lo + hi) / 2
         out["fog_boundary"] = {"type": "cube", "to_world": to_world(cube), "bsdf": {"type": "null"},
                                "interior": fog_ref}
-        if box is not None:
-            in_fog = _inside(box)
-            if not in_fog(cam["origin"]):
-                fog_ref = None  # the camera starts in vacuum; rays enter the fog through the cube
-            else:
-                fog_ref = {"type": "ref", "id": "fog"}
+        if box is not None and not _inside(box)(cam["origin"]):
+            fog_ref = None  # the camera starts in vacuum; rays enter the fog through the cube
     sensor = {
         "type": "perspective",
         "fov": float(cam["fov"]),
@@ -292,7 +289,7 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
         else:
             raise ValueError(f"to_mitsuba: no Mitsuba shape for shapes.{i}.type {s['type']!r}")
         shape["bsdf"] = _bsdf(s["bsdf"], f"shapes.{i}")
-        if med is not None and med.get("bounds") is not None:
+        if bounded:
             # bounded fog: a reflecting surface keeps the ray's medium (no transition); a glass object is a medium
             # transition and must know what surrounds it (conventions: wholly inside or outside the box)
             if s["bsdf"]["type"] == "glass":
@@ -325,7 +322,7 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
                 "bsdf": {"type": "diffuse", "reflectance": _rgb_tex(0.0)},
                 "emitter": {"type": "area", "radiance": _rgb_tex(lt["radiance"])},
             }
-            if fog_ref is not None and (med is None or med.get("bounds") is None):
+            if fog_ref is not None and not bounded:
                 shape["exterior"] = fog_ref
             out[f"light_{i}"] = shape
         else:
