@@ -656,6 +656,20 @@ def trace_path(tr: Tracer, o, d, U) -> Float[Array, "3"]:
     init = start_path(o, d)
     if U.shape[0] == 0:
         return init.L
-    body = jax.checkpoint(lambda state, xs: (bounce(tr, state, *xs), None))
-    final, _ = jax.lax.scan(body, init, (jnp.arange(U.shape[0]), U))
+    body = jax.checkpoint(lambda state, xs: (bounce(tr, state, xs[0], Uniforms(xs[1])), None))
+    final, _ = jax.lax.scan(body, init, (jnp.arange(U.shape[0]), tuple(U[:, k] for k in range(U.shape[1]))))
     return final.L
+
+
+class Uniforms:
+    """A bounce's uniforms as one scalar per dimension (`U[k]`; a slice gives a small array): under `vmap`, each
+    dimension is then a contiguous array over the lanes, not a strided column of a `(lanes, n_dims)` table."""
+
+    def __init__(self, cols):
+        self.cols = tuple(cols)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            cols = self.cols[i]
+            return jnp.stack(cols) if cols else jnp.zeros((0,), jnp.float32)
+        return self.cols[i]

@@ -39,7 +39,7 @@ from jax.flatten_util import ravel_pytree
 from jax.interpreters import ad
 from jaxtyping import Array
 
-from ._integrator import SamplingOptions, bounce, make_tracer, n_dims, russian_roulette, start_path
+from ._integrator import SamplingOptions, Uniforms, bounce, make_tracer, n_dims, russian_roulette, start_path
 from ._random import hashed_uniforms
 from ._scene import Scene, pack
 
@@ -104,7 +104,11 @@ def _run(scene: Scene, words, chunk_ids, valid, options: SamplingOptions, propos
 
 def _lanes(tracer, state, b, U):
     """One bounce of every lane, then Russian roulette."""
-    return jax.vmap(lambda st, bb, u: russian_roulette(tracer, bounce(tracer, st, bb, u), bb, u))(state, b, U)
+    def one(st, bb, cols):
+        u = Uniforms(cols)
+        return russian_roulette(tracer, bounce(tracer, st, bb, u), bb, u)
+
+    return jax.vmap(one)(state, b, tuple(U[:, k] for k in range(U.shape[1])))
 
 
 def _forward(scene, words, chunk_ids, valid, proposal, *, options, chunk, n_ch):
