@@ -242,3 +242,19 @@ def test_phase_function_code_is_compiled_only_where_used():
 
     assert primitive_counts(scene(jf.HenyeyGreenstein(0.3)))["cbrt"] == 0
     assert primitive_counts(scene(jf.Rayleigh()))["cbrt"] > 0
+
+
+def test_uniforms_give_each_dimension_and_slices_of_the_bounce_row():
+    """`Uniforms` (a bounce's random numbers as one array per dimension, contiguous over the lanes under `vmap`)
+    reads the same numbers as the row of the uniform table it was split from: single dimensions, slices (a light's
+    or a BSDF's few dimensions, in order) and empty slices (a light with no dimensions)."""
+    from jaxfog._integrator import Uniforms
+
+    table = np.asarray(jax.random.uniform(jax.random.key(3), (5, 7)), np.float32)  # 5 lanes x 7 dimensions
+    cols = tuple(table[:, k] for k in range(table.shape[1]))
+    one = jax.vmap(lambda c: Uniforms(c)[4])(cols)
+    some = jax.vmap(lambda c: Uniforms(c)[2:5])(cols)
+    none = jax.vmap(lambda c: Uniforms(c)[6:6])(cols)
+    np.testing.assert_array_equal(np.asarray(one), table[:, 4])
+    np.testing.assert_array_equal(np.asarray(some), table[:, 2:5])
+    assert none.shape == (5, 0)

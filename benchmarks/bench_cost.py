@@ -1,0 +1,160 @@
+"""The cost of a sample, jaxfog against Mitsuba 3, in one run (issue 17, item 3).
+
+    python -m benchmarks.bench_cost [--scene spot_fog] [--blocks 4] [--reps 3] [--spp 16] [--mitsuba-spp 64]
+                                    [--mitsuba-variant llvm_ad_rgb] [--out DIR]
+
+Both renderers on every core (jaxfog: `jaxfog.use_cpu_cores()`; Mitsuba: Dr.Jit's thread pool), the scene at its
+own size and `max_depth`, no Russian roulette on either side (`jaxfog.to_mitsuba`). The run alternates blocks, so a
+drift of the machine's speed hits every row alike: a jaxfog block renders `--reps` images with each jaxfog
+configuration (compiled before the first block), a Mitsuba block is one subprocess (`benchmarks.bench_mitsuba`) that
+compiles its kernels on a warm-up render and then times `--reps` renders of `--mitsuba-spp`. Rows:
+
+- `jaxfog default`: `render(scene, key, spp)` with the default sampling (equiangular, light-angle lobe, distance
+  mixture): the sample the equal-error benchmark measures.
+- `jaxfog, Mitsuba's techniques`: free flight, phase-function / BSDF sampling and one light sample per vertex only
+  (`equiangular=False, light_lobe=0, distance_mix=0`): the work Mitsuba's `volpath` does per sample.
+- `Mitsuba volpath`: its `render(scene, spp)` until the pixels are in a numpy array.
+- `jaxfog per call`: the fixed cost of one `render` call: the scene at 8 x 8 px, 1 spp (64 paths), per call.
+
+Each figure is ms per sample per pixel of the whole image (per call for the last row): the median over all timed
+renders, with min and max; the ratio column divides each jaxfog block's median by the Mitsuba block next to it
+(median over the block pairs). Prints a table and writes `cost.json` to `--out` (default
+`docs/results/bench/cost`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import REPO, machine_info, scene_path, subprocess_env, write_json
+
+OUT = REPO / "docs" / "results" / "bench" / "cost"
+CONFIGS = {
+    "jaxfog default": {},
+    "jaxfog, Mitsuba's techniques": {"equiangular": False, "light_lobe": 0.0, "distance_mix": 0.0},
+}
+
+
+def _mitsuba_block(scene: Path, spp: int, reps: int, seed: int, variant: str, timeout: float = 1800) -> dict:
+    """One Mitsuba subprocess: warm-up render (compiles), then `reps` timed renders; returns its npz fields."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "m.npz"
+        cmd = [sys.executable, "-m", "benchmarks.bench_mitsuba", str(scene), "--spp", str(spp), "--chunks", str(reps),
+               "--seed", str(seed), "--variant", variant, "--out", str(out), "--quiet"]
+        r = subprocess.run(cmd, cwd=REPO, env=subprocess_env(), capture_output=True, text=True, timeout=timeout)
+        if r.returncode != 0:
+            raise RuntimeError(f"Mitsuba block failed (exit {r.returncode}): {r.stderr.strip()[-2000:]}")
+        with np.load(out) as z:
+            return {k: z[k] for k in z.files if k != "images"} | {"mean": float(z["images"].mean())}
+
+
+def _summary(values):
+    return {"median": statistics.median(values), "min": min(values), "max": max(values), "n": len(values)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_cost", description=__doc__.split("\n\n")[0])
+    p.add_argument("--scene", default="spot_fog", help="a shipped scene's name or a .json path (default spot_fog)")
+    p.add_argument("--blocks", type=int, default=4, help="alternations of jaxfog and Mitsuba blocks (default 4)")
+    p.add_argument("--reps", type=int, default=3, help="timed renders per configuration and block (default 3)")
+    p.add_argument("--spp", type=int, default=16, help="jaxfog spp per render (default 16)")
+    p.add_argument("--mitsuba-spp", type=int, default=64, help="Mitsuba spp per render (default 64)")
+    p.add_argument("--mitsuba-variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
+    p.add_argument("--no-mitsuba", action="store_true", help="jaxfog rows only")
+    p.add_argument("--out", default=str(OUT), help="output folder (default docs/results/bench/cost)")
+    args = p.parse_args(argv)
+    for name in ("blocks", "reps", "spp", "mitsuba_spp"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be >= 1")
+
+    import jaxfog
+
+    jaxfog.use_cpu_cores()
+    import jax
+
+    path = scene_path(args.scene) if not args.scene.endswith(".json") else Path(args.scene)
+    sf = jaxfog.load_scene(path)
+    scene = sf.scene
+    small = jaxfog.load_scene(path, ["camera.width=8", "camera.height=8"]).scene
+    cam = scene.camera
+    print(f"{path.name}: {cam.width} x {cam.height}, max_depth {scene.max_depth}; {jax.local_device_count()} JAX "
+          f"devices; jaxfog {args.spp} spp per render, Mitsuba {args.mitsuba_variant} {args.mitsuba_spp} spp",
+          flush=True)
+
+    fns, first = {}, {}
+    for name, kw in CONFIGS.items():
+        fns[name] = (lambda key, kw=kw: jaxfog.render(scene, key, args.spp, **kw).block_until_ready())
+    fns["jaxfog per call"] = lambda key: jaxfog.render(small, key, 1).block_until_ready()
+    for name, fn in fns.items():
+        t0 = time.perf_counter()
+        fn(jax.random.key(10_000))
+        first[name] = time.perf_counter() - t0
+
+    per = {name: [] for name in fns}
+    block_medians = {name: [] for name in fns}
+    mitsuba, mitsuba_blocks, means = [], [], {}
+    key = 0
+    for b in range(args.blocks):
+        for name, fn in fns.items():
+            ts = []
+            for _ in range(args.reps):
+                t0 = time.perf_counter()
+                fn(jax.random.key(key))
+                key += 1
+                ts.append(time.perf_counter() - t0)
+            scale = 1000.0 if name == "jaxfog per call" else 1000.0 / args.spp
+            per[name] += [t * scale for t in ts]
+            block_medians[name].append(statistics.median(ts) * scale)
+        if not args.no_mitsuba:
+            m = _mitsuba_block(path, args.mitsuba_spp, args.reps, seed=100 * b, variant=args.mitsuba_variant)
+            ms = [1000.0 * t / args.mitsuba_spp for t in m["times"]]
+            mitsuba += ms
+            mitsuba_blocks.append({"median_ms_per_spp": statistics.median(ms), "warmup_s": float(m["warmup_s"]),
+                                   "threads": int(m["threads"]), "variant": str(m["variant"]),
+                                   "version": str(m["version"]), "mean": m["mean"]})
+        print(f"block {b + 1}/{args.blocks}: " + ", ".join(f"{k} {statistics.median(v[-args.reps:]):.2f}"
+                                                          for k, v in per.items())
+              + (f", Mitsuba {statistics.median(mitsuba[-args.reps:]):.2f}" if mitsuba else ""), flush=True)
+
+    rows = []
+    for name in CONFIGS:
+        row = {"row": name, "unit": "ms/spp", **_summary(per[name]), "first_call_s": first[name]}
+        if mitsuba_blocks:
+            ratios = [a / m["median_ms_per_spp"] for a, m in zip(block_medians[name], mitsuba_blocks)]
+            row["ratio_to_mitsuba"] = _summary(ratios)
+        rows.append(row)
+    if mitsuba:
+        rows.append({"row": f"Mitsuba volpath ({mitsuba_blocks[0]['variant']}, {mitsuba_blocks[0]['threads']} "
+                            f"threads)", "unit": "ms/spp", **_summary(mitsuba),
+                     "first_call_s": statistics.median(m["warmup_s"] for m in mitsuba_blocks)})
+    rows.append({"row": "jaxfog per call (8 x 8 px, 1 spp)", "unit": "ms/call", **_summary(per["jaxfog per call"]),
+                 "first_call_s": first["jaxfog per call"]})
+
+    print(f"\n{'row':44s} {'median':>8s} {'min':>8s} {'max':>8s}   ratio to Mitsuba (median [min, max])")
+    for r in rows:
+        ratio = r.get("ratio_to_mitsuba")
+        rs = f"{ratio['median']:.3f} [{ratio['min']:.3f}, {ratio['max']:.3f}]" if ratio else ""
+        print(f"{r['row'] + ' (' + r['unit'] + ')':44s} {r['median']:8.2f} {r['min']:8.2f} {r['max']:8.2f}   {rs}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "cost.json", {
+        "machine": machine_info(), "command": "python -m benchmarks.bench_cost " + " ".join(argv or sys.argv[1:]),
+        "scene": path.name, "width": cam.width, "height": cam.height, "max_depth": scene.max_depth,
+        "spp": args.spp, "mitsuba_spp": args.mitsuba_spp, "blocks": args.blocks, "reps": args.reps,
+        "rows": rows, "mitsuba_blocks": mitsuba_blocks,
+        "per_render": {**per, "mitsuba": mitsuba}, "block_medians": block_medians,
+    })
+    print(f"wrote {out / 'cost.json'}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
