@@ -204,6 +204,7 @@ class Tracer(NamedTuple):
     lobe: float
     mix: float
     phase_lobe: float = 0.0
+    barriers: bool = False
 
 
 def make_tracer(scene: Scene, pk: Packed, options: SamplingOptions, proposal=None) -> Tracer:
@@ -219,6 +220,7 @@ def make_tracer(scene: Scene, pk: Packed, options: SamplingOptions, proposal=Non
         scene=scene, pk=pk, medium=scene.medium, sampler=sampling_medium(scene.medium, options, proposal),
         layout=layout(scene), reparam=reparam, equiangular=eq, lobe=lobe,
         mix=float(options.distance_mix) if (eq and not reparam) else 0.0, phase_lobe=phase_lobe,
+        barriers=jax.default_backend() == "cpu",
     )
 
 
@@ -610,15 +612,33 @@ def update(state: PathState, seg: Segment, L, med: Next | None, surf: Next) -> P
     return PathState(nxt.o, nxt.d, jnp.where(alive, nxt.beta, 0.0), L, alive, nxt.specular, nxt.pdf, nxt.in_medium)
 
 
+def computed_once(tr: Tracer, x):
+    """`x` (a pytree of arrays) unchanged, computed once: a fusion barrier for XLA's CPU backend (speed only).
+
+    XLA's CPU fusion copies cheap producers (arithmetic, selects, comparisons) into every kernel that consumes them,
+    so a value that several later stages read (a segment's distances, weights and densities; the scattering
+    direction) is recomputed inside each of their kernels, and the kernels grow until LLVM spills them.
+    `lax.optimization_barrier` does not prevent it (the CPU pipeline removes barriers before fusion). A `lax.cond`
+    on an unbatched, traced predicate is kept, and its operands are then computed once, into buffers, by the
+    kernels before it. Both branches return `x`'s values (the second adds zeros, so XLA cannot merge the two), so
+    the predicate (the camera's fov is finite) decides nothing. Only on the CPU backend (`tr.barriers`); elsewhere
+    `x` is returned as it is. Where it pays is measured: `docs/results/bench/PROFILE.md`, session 7."""
+    if not tr.barriers:
+        return x
+    return jax.lax.cond(jnp.isfinite(tr.scene.camera.fov), lambda v: v,
+                        lambda v: jax.tree.map(lambda a: a + jnp.zeros_like(a), v), x)
+
+
 def bounce(tr: Tracer, state: PathState, b, U) -> PathState:
-    """One segment of the path and its vertex: the stages in order."""
+    """One segment of the path and its vertex: the stages in order (the segment and the direction each computed
+    once, `computed_once`: every later stage reads them)."""
     nee_ok = state.alive if tr.scene.max_depth == -1 else state.alive & (b + 2 <= tr.scene.max_depth)
     hit = intersect(tr.pk, state.o, state.d)
-    seg = free_flight(tr, state, hit, U) if tr.medium is not None else no_flight(hit)
+    seg = computed_once(tr, free_flight(tr, state, hit, U) if tr.medium is not None else no_flight(hit))
     L = state.L
     if tr.equiangular:
         L = L + direct_on_segment(tr, state, seg, nee_ok)
-    dr = next_direction(tr, state, hit, seg, U)
+    dr = computed_once(tr, next_direction(tr, state, hit, seg, U))
     med = medium_vertex(tr, state, seg, dr) if tr.medium is not None else None
     L_e, surf = surface_vertex(tr, state, hit, seg, dr, U)
     L = L + L_e + direct_at_vertex(tr, state, hit, seg, nee_ok, U)
