@@ -489,6 +489,7 @@ def next_direction(tr: Tracer, state: PathState, hit: Hit, seg: Segment, U) -> D
     omc, opc = polar
     for mask, (omc_c, opc_c), axis_c in reversed(cands[:-1]):
         omc, opc, axis = jnp.where(mask, omc_c, omc), jnp.where(mask, opc_c, opc), jnp.where(mask, axis_c, axis)
+    omc, opc, axis = computed_once(tr, (omc, opc, axis))  # the chosen technique's polar sample and axis
     wo = to_direction(Polar(omc, opc), U[ly.azimuth], axis)
     if tr.lobe == 0:
         return Direction(wo, ph, None, None, None)
