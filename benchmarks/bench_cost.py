@@ -56,8 +56,39 @@ def _mitsuba_block(scene: Path, spp: int, reps: int, seed: int, variant: str, ti
             return {k: z[k] for k in z.files if k != "images"} | {"mean": float(z["images"].mean())}
 
 
+def _commit() -> str:
+    """The checkout's commit, with "+dirty" when tracked files differ from it ("" outside git)."""
+    try:
+        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
+                               capture_output=True, text=True).stdout.strip()
+        return rev + ("+dirty" if rev and dirty else "")
+    except OSError:
+        return ""
+
+
 def _summary(values):
     return {"median": statistics.median(values), "min": min(values), "max": max(values), "n": len(values)}
+
+
+def table_rows(per: dict, block_medians: dict, mitsuba: list, mitsuba_blocks: list, first: dict) -> list[dict]:
+    """The table: per configuration the median, min and max over all its timed renders (ms/spp), its first call
+    (s, compile included) and, with Mitsuba, the ratio of each block's median to the Mitsuba block next to it
+    (median, min, max over the block pairs); then Mitsuba's row and the per-call row (ms/call)."""
+    rows = []
+    for name in CONFIGS:
+        row = {"row": name, "unit": "ms/spp", **_summary(per[name]), "first_call_s": first[name]}
+        if mitsuba_blocks:
+            ratios = [a / m["median_ms_per_spp"] for a, m in zip(block_medians[name], mitsuba_blocks)]
+            row["ratio_to_mitsuba"] = _summary(ratios)
+        rows.append(row)
+    if mitsuba:
+        rows.append({"row": f"Mitsuba volpath ({mitsuba_blocks[0]['variant']}, {mitsuba_blocks[0]['threads']} "
+                            f"threads)", "unit": "ms/spp", **_summary(mitsuba),
+                     "first_call_s": statistics.median(m["warmup_s"] for m in mitsuba_blocks)})
+    rows.append({"row": "jaxfog per call (8 x 8 px, 1 spp)", "unit": "ms/call", **_summary(per["jaxfog per call"]),
+                 "first_call_s": first["jaxfog per call"]})
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -124,20 +155,7 @@ def main(argv: list[str] | None = None) -> int:
                                                           for k, v in per.items())
               + (f", Mitsuba {statistics.median(mitsuba[-args.reps:]):.2f}" if mitsuba else ""), flush=True)
 
-    rows = []
-    for name in CONFIGS:
-        row = {"row": name, "unit": "ms/spp", **_summary(per[name]), "first_call_s": first[name]}
-        if mitsuba_blocks:
-            ratios = [a / m["median_ms_per_spp"] for a, m in zip(block_medians[name], mitsuba_blocks)]
-            row["ratio_to_mitsuba"] = _summary(ratios)
-        rows.append(row)
-    if mitsuba:
-        rows.append({"row": f"Mitsuba volpath ({mitsuba_blocks[0]['variant']}, {mitsuba_blocks[0]['threads']} "
-                            f"threads)", "unit": "ms/spp", **_summary(mitsuba),
-                     "first_call_s": statistics.median(m["warmup_s"] for m in mitsuba_blocks)})
-    rows.append({"row": "jaxfog per call (8 x 8 px, 1 spp)", "unit": "ms/call", **_summary(per["jaxfog per call"]),
-                 "first_call_s": first["jaxfog per call"]})
-
+    rows = table_rows(per, block_medians, mitsuba, mitsuba_blocks, first)
     print(f"\n{'row':44s} {'median':>8s} {'min':>8s} {'max':>8s}   ratio to Mitsuba (median [min, max])")
     for r in rows:
         ratio = r.get("ratio_to_mitsuba")
@@ -146,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "cost.json", {
-        "machine": machine_info(), "command": "python -m benchmarks.bench_cost " + " ".join(argv or sys.argv[1:]),
+        "machine": machine_info(), "commit": _commit(), "command": "python -m benchmarks.bench_cost " + " ".join(argv or sys.argv[1:]),
         "scene": path.name, "width": cam.width, "height": cam.height, "max_depth": scene.max_depth,
         "spp": args.spp, "mitsuba_spp": args.mitsuba_spp, "blocks": args.blocks, "reps": args.reps,
         "rows": rows, "mitsuba_blocks": mitsuba_blocks,

@@ -63,7 +63,14 @@ def machine_info() -> dict:
     """Where a benchmark ran: platform, Python, jax and its devices, CPU count, load average and niceness now."""
     import jax
 
-    return {"platform": platform.platform(), "python": platform.python_version(), "jax": jax.__version__,
+    cpu = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), "")
+    except OSError:
+        pass
+    return {"platform": platform.platform(), "cpu": cpu or platform.processor(), "python": platform.python_version(),
+            "jax": jax.__version__,
             "backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()],
             "cpu_count": os.cpu_count(), "loadavg_start": list(os.getloadavg()), "nice": os.nice(0)}
 

@@ -331,3 +331,39 @@ def test_tail_index_and_heavy_tail_mean_on_pareto_samples():
         if alpha > 2:
             assert abs(m - v.mean()) < 4 * v.std() / np.sqrt(n)
         assert tail_summary(v[:2000])["lower_bound_975_trunc_q90"] < mu
+
+
+# ------------------------------------------------------------------------------------------------------ bench_cost
+def test_cost_table_pairs_each_jaxfog_block_with_the_mitsuba_block_beside_it():
+    from benchmarks import bench_cost
+
+    per = {"jaxfog default": [10.0, 12.0, 30.0, 31.0], "jaxfog, Mitsuba's techniques": [8.0, 8.0, 20.0, 22.0],
+           "jaxfog per call": [2.0, 3.0, 4.0, 5.0]}
+    blocks = {"jaxfog default": [11.0, 30.5], "jaxfog, Mitsuba's techniques": [8.0, 21.0], "jaxfog per call": [2.5, 4.5]}
+    mitsuba_blocks = [{"median_ms_per_spp": 10.0, "warmup_s": 1.0, "threads": 2, "variant": "llvm_ad_rgb"},
+                      {"median_ms_per_spp": 20.0, "warmup_s": 3.0, "threads": 2, "variant": "llvm_ad_rgb"}]
+    first = {k: 1.0 for k in per}
+    rows = {r["row"]: r for r in bench_cost.table_rows(per, blocks, [9.0, 11.0, 19.0, 21.0], mitsuba_blocks, first)}
+    d = rows["jaxfog default"]
+    assert d["median"] == 21.0 and d["min"] == 10.0 and d["max"] == 31.0
+    # block 1: 11 / 10, block 2: 30.5 / 20: the machine slowed down by 2x and the ratios do not see it
+    assert d["ratio_to_mitsuba"]["min"] == pytest.approx(1.1) and d["ratio_to_mitsuba"]["max"] == pytest.approx(1.525)
+    assert rows["jaxfog, Mitsuba's techniques"]["ratio_to_mitsuba"]["median"] == pytest.approx((0.8 + 1.05) / 2)
+    assert rows["Mitsuba volpath (llvm_ad_rgb, 2 threads)"]["median"] == 15.0
+    assert rows["Mitsuba volpath (llvm_ad_rgb, 2 threads)"]["first_call_s"] == 2.0
+    assert rows["jaxfog per call (8 x 8 px, 1 spp)"]["unit"] == "ms/call"
+    alone = bench_cost.table_rows(per, blocks, [], [], first)
+    assert all("ratio_to_mitsuba" not in r for r in alone) and len(alone) == 3
+
+
+@pytest.mark.slow
+def test_cost_run_without_mitsuba_end_to_end(tmp_path):
+    out = tmp_path / "cost"
+    r = subprocess.run([sys.executable, "-m", "benchmarks.bench_cost", "--no-mitsuba", "--blocks", "1", "--reps", "1",
+                        "--spp", "1", "--scene", "spot_fog_thin", "--out", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    data = json.loads((out / "cost.json").read_text())
+    assert [row["row"] for row in data["rows"]] == ["jaxfog default", "jaxfog, Mitsuba's techniques",
+                                                    "jaxfog per call (8 x 8 px, 1 spp)"]
+    assert all(row["median"] > 0 for row in data["rows"])
