@@ -6,6 +6,7 @@
 
 Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line tools and the fit run):
 - `plain`: `render(spot_fog, key, 16)` at 128 x 128, max_depth 8 (the defaults).
+- `unbounded`: the same scene with `max_depth = -1` (paths of any length, Russian roulette), 8 spp.
 - `jvp`: the fit's program: `jax.jacfwd` over (sigma_t, g) of `render(..., estimator="proposal", proposal=<the
   medium at the same values>, variance=True)` of spot_fog downscaled to 8 x 8 px (the camera's fov kept), 2048 spp
   (the shape of `fitting.core.Problem.value_and_jacobian`).
@@ -37,7 +38,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "docs" / "results" / "bench" / "sample"
 SCENE = REPO / "data_synthetic" / "scenes" / "spot_fog.json"
-CASES = ("plain", "jvp", "jvp256", "call")
+CASES = ("plain", "unbounded", "jvp", "jvp256", "call")
 
 
 def _build(jf, case: str):
@@ -46,9 +47,9 @@ def _build(jf, case: str):
     import jax
 
     key = jax.random.key(0)
-    if case == "plain":
-        scene = jf.load_scene(SCENE).scene
-        spp = 16
+    if case in ("plain", "unbounded"):
+        scene = jf.load_scene(SCENE, ["integrator.max_depth=-1"] if case == "unbounded" else []).scene
+        spp = 16 if case == "plain" else 8
 
         def fn():
             jf.render(scene, key, spp).block_until_ready()
@@ -91,9 +92,10 @@ def _build_jitted(jf, case: str):
     import jax
 
     key = jax.random.key(0)
-    if case == "plain":
-        scene = jf.load_scene(SCENE).scene
-        return jax.jit(lambda k: jf.render(scene, k, 16)), (key,), scene.camera.width * scene.camera.height * 16
+    if case in ("plain", "unbounded"):
+        scene = jf.load_scene(SCENE, ["integrator.max_depth=-1"] if case == "unbounded" else []).scene
+        spp = 16 if case == "plain" else 8
+        return jax.jit(lambda k: jf.render(scene, k, spp)), (key,), scene.camera.width * scene.camera.height * spp
     f, y0, n_paths = _fit_render(jf, case)
     return jax.jit(jax.jacfwd(f, has_aux=True)), (y0,), n_paths
 

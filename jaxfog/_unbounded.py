@@ -39,7 +39,8 @@ from jax.flatten_util import ravel_pytree
 from jax.interpreters import ad
 from jaxtyping import Array
 
-from ._integrator import SamplingOptions, Uniforms, bounce, make_tracer, n_dims, russian_roulette, start_path
+from ._integrator import (SamplingOptions, Uniforms, bounce, computed_once, make_tracer, n_dims, russian_roulette,
+                          start_path)
 from ._random import hashed_uniforms
 from ._scene import Scene, pack
 
@@ -90,6 +91,8 @@ def _run(scene: Scene, words, chunk_ids, valid, options: SamplingOptions, propos
         row, qid, b = pick(row_n, row), pick(q, qid), pick(jnp.zeros_like(b), b)
         U = jax.vmap(lambda qq, r, bb: hashed_uniforms(words[qq // chunk, 1], r, bb.astype(jnp.uint32) * K + cols)
                      )(qid, row, b)
+        # the refilled lanes and their uniforms computed once (`computed_once`): the bounce's stages all read them
+        state, U = computed_once(tracer, (state, U))
         extra, new = step(tracer, extra, state, row, qid, b, U)
         return extra, new, row, qid, b + 1, next_q + jnp.sum(take.astype(jnp.int32))
 
