@@ -8,6 +8,7 @@ import dataclasses
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import jax.monitoring
 import numpy as np
 import pytest
@@ -258,3 +259,40 @@ def test_uniforms_give_each_dimension_and_slices_of_the_bounce_row():
     np.testing.assert_array_equal(np.asarray(one), table[:, 4])
     np.testing.assert_array_equal(np.asarray(some), table[:, 2:5])
     assert none.shape == (5, 0)
+
+
+def test_computed_once_changes_no_value_or_derivative_and_stays_in_the_program():
+    """`computed_once` (the tracer's fusion barrier on the CPU) returns its operand's values, passes derivatives
+    through in both modes and under `vmap`, keeps bool and int leaves, and survives XLA's optimizations as a
+    conditional (the reason it exists: an optimization barrier would be removed)."""
+    from jaxfog._integrator import computed_once, make_tracer, SamplingOptions
+    from jaxfog._scene import pack
+
+    scene = fog_scene()
+    tr = make_tracer(scene, pack(scene), SamplingOptions())
+    assert tr.barriers == (jax.default_backend() == "cpu")
+
+    def f(x):
+        y, flag, k = computed_once(tr, (jnp.sin(x) * x, x > 0.5, jnp.int32(3)))
+        return jnp.where(flag, y, -y) * k
+
+    def g(x):
+        return jnp.where(x > 0.5, jnp.sin(x) * x, -jnp.sin(x) * x) * 3
+
+    xs = jnp.linspace(-1.0, 2.0, 7)
+    np.testing.assert_array_equal(np.asarray(jax.vmap(f)(xs)), np.asarray(jax.vmap(g)(xs)))
+    np.testing.assert_allclose(np.asarray(jax.vmap(jax.grad(f))(xs)), np.asarray(jax.vmap(jax.grad(g))(xs)),
+                               rtol=1e-6)
+    t_f = jax.jvp(f, (jnp.float32(0.7),), (jnp.float32(1.0),))[1]
+    t_g = jax.jvp(g, (jnp.float32(0.7),), (jnp.float32(1.0),))[1]
+    assert float(t_f) == pytest.approx(float(t_g), rel=1e-6)
+    if tr.barriers:  # in `render` the scene's arrays are arguments of the compiled program, so the predicate is too
+        arrays, static = eqx.partition(scene, eqx.is_array)
+
+        def traced(a, x):
+            sc = eqx.combine(a, static)
+            t = make_tracer(sc, pack(sc), SamplingOptions())
+            return jax.vmap(lambda v: computed_once(t, jnp.sin(v) * v) * 3)(x)
+
+        hlo = jax.jit(traced).lower(arrays, xs).compile().as_text()
+        assert "conditional" in hlo
