@@ -213,8 +213,10 @@ def load_any(scene, size: int, overrides=()):
 
 def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp: int, fixed_depth: int = 32,
                      fixed_images: int = 32, fixed_spp: int = 256, sides=("jaxfog", "mitsuba"), cache=None,
-                     log=print, scene="spot_fog_dense", tag: str = "dense") -> dict | None:
-    """spot_fog_dense (sigma_t 3) at `size x size`: jaxfog and Mitsuba (`scalar_rgb`) independent images,
+                     log=print, scene="spot_fog_dense", tag: str = "dense", variant: str = "scalar_rgb",
+                     key_offset: int = 0) -> dict | None:
+    """spot_fog_dense (sigma_t 3) at `size x size`: jaxfog and Mitsuba (`variant`, default `scalar_rgb`) independent
+    images (`key_offset` added to every jaxfog key and Mitsuba seed below, for a run independent of an earlier one),
 
     1. unbiased on both sides: `max_depth = -1`, Russian roulette from `rr_depth` 5 (jaxfog keys fold_in(key(899),
        k), `spp` each; Mitsuba seeds 1000 + k, `mi_spp` each);
@@ -226,20 +228,22 @@ def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp:
     (`area_fog_dense()`), its cache files named `{tag}_{size}_...`."""
     import os
 
+    from jaxfog._mitsuba import import_mitsuba
+
     try:
-        import mitsuba as mi
-    except ImportError:
-        log("mitsuba not installed (pip install '.[compare]'): dense-fog cross-check skipped")
+        mi = import_mitsuba(variant)
+    except ImportError as e:
+        log(f"Mitsuba {variant} unavailable ({e}): dense-fog cross-check skipped")
         return None
     import jax
 
     import jaxfog as jf
 
-    mi.set_variant("scalar_rgb")  # the LLVM variants abort on this machine's libLLVM
     path = (lambda t: None) if cache is None else (lambda t: os.path.join(cache, f"{tag}_{size}_{t}.npz"))
     jx, mx = {}, {}
-    runs = {-1: (n_images, spp, 899, mi_images, mi_spp, 1000), fixed_depth: (fixed_images, fixed_spp, 900 + fixed_depth,
-                                                                            fixed_images, fixed_spp, 5000)}
+    o = key_offset
+    runs = {-1: (n_images, spp, 899 + o, mi_images, mi_spp, 1000 + o),
+            fixed_depth: (fixed_images, fixed_spp, 900 + fixed_depth + o, fixed_images, fixed_spp, 5000 + o)}
     times = {}
     for depth, (nj, sj, kj, nm, sm, seed_m) in runs.items():
         over = [f"integrator.max_depth={depth}"]
@@ -255,7 +259,8 @@ def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp:
             times[f"mitsuba_{depth}"] = None if np.all(np.isnan(secs)) else secs
     res = {"size": size, "jaxfog_images": n_images, "jaxfog_spp": spp, "mitsuba_images": mi_images,
            "mitsuba_spp": mi_spp, "fixed_depth": fixed_depth, "fixed_images": fixed_images, "fixed_spp": fixed_spp,
-           "seconds_per_image": times, "mitsuba_version": mi.__version__, "mitsuba_variant": "scalar_rgb"}
+           "seconds_per_image": times, "mitsuba_version": mi.__version__, "mitsuba_variant": variant,
+           "key_offset": key_offset}
     if jx and mx:
         res["unbounded_vs_mitsuba"] = compare_images(jx[-1], mx[-1], "jaxfog -1 vs Mitsuba -1 (rr 5)", log)
         res["fixed_vs_mitsuba"] = compare_images(jx[fixed_depth], mx[fixed_depth],
@@ -519,6 +524,12 @@ def main(argv=None) -> int:
                    help="1-spp 256 x 256 images of spot_fog_dense unbiased for the tail index (default 128)")
     p.add_argument("--sides", nargs="+", choices=("jaxfog", "mitsuba"), default=["jaxfog", "mitsuba"],
                    help="render only these sides of the cross-check (with --cache, two processes can share it)")
+    p.add_argument("--mitsuba-variant", default="scalar_rgb",
+                   help="Mitsuba variant of the dense / area / box cross-checks (default scalar_rgb; llvm_ad_rgb is "
+                        "much faster where Dr.Jit's LLVM backend runs)")
+    p.add_argument("--key-offset", type=int, default=0,
+                   help="added to the cross-checks' jaxfog keys and Mitsuba seeds: images independent of a run with "
+                        "another offset (default 0)")
     p.add_argument("--cache", default=None, help="folder for the cross-check's images (resumable; default none)")
     p.add_argument("--out", default=str(REPO / "docs" / "results" / "unbounded"), help="output folder")
     args = p.parse_args(argv)
@@ -541,7 +552,8 @@ def main(argv=None) -> int:
             os.makedirs(args.cache, exist_ok=True)
         dense = dense_vs_mitsuba(args.dense_size, args.dense_images, args.dense_spp, args.mitsuba_images,
                                  args.mitsuba_spp, args.fixed_depth, args.fixed_images, args.fixed_spp,
-                                 tuple(args.sides), args.cache)
+                                 tuple(args.sides), args.cache, variant=args.mitsuba_variant,
+                                 key_offset=args.key_offset)
         if set(args.sides) != {"jaxfog", "mitsuba"}:
             print("rendered", args.sides, "only: nothing written")
             return 0
@@ -553,7 +565,8 @@ def main(argv=None) -> int:
             os.makedirs(args.cache, exist_ok=True)
         area = dense_vs_mitsuba(args.dense_size, args.area_images, args.dense_spp, args.area_images, args.dense_spp,
                                 args.fixed_depth, args.area_fixed_images, args.fixed_spp, tuple(args.sides),
-                                args.cache, scene=area_fog_dense(), tag="area")
+                                args.cache, scene=area_fog_dense(), tag="area", variant=args.mitsuba_variant,
+                                key_offset=args.key_offset)
         if set(args.sides) != {"jaxfog", "mitsuba"}:
             print("rendered", args.sides, "only: nothing written")
             return 0
@@ -564,7 +577,8 @@ def main(argv=None) -> int:
             os.makedirs(args.cache, exist_ok=True)
         box = dense_vs_mitsuba(args.dense_size, args.box_images, args.dense_spp, args.box_mitsuba_images,
                                args.dense_spp, args.fixed_depth, args.box_fixed_images, args.fixed_spp,
-                               tuple(args.sides), args.cache, scene=box_fog_dense(), tag="box")
+                               tuple(args.sides), args.cache, scene=box_fog_dense(), tag="box",
+                               variant=args.mitsuba_variant, key_offset=args.key_offset)
         if set(args.sides) != {"jaxfog", "mitsuba"}:
             print("rendered", args.sides, "only: nothing written")
             return 0
