@@ -48,8 +48,7 @@ def _build(jf, case: str):
 
     key = jax.random.key(0)
     if case in ("plain", "unbounded"):
-        scene = jf.load_scene(SCENE, ["integrator.max_depth=-1"] if case == "unbounded" else []).scene
-        spp = 16 if case == "plain" else 8
+        scene, spp = _plain_case(jf, case)
 
         def fn():
             jf.render(scene, key, spp).block_until_ready()
@@ -64,6 +63,13 @@ def _build(jf, case: str):
 
         return fn, n_paths
     raise ValueError(case)
+
+
+def _plain_case(jf, case: str):
+    """`(scene, spp)` of a plain-render case: spot_fog at 16 spp, or with paths of any length at 8 spp."""
+    if case == "unbounded":
+        return jf.load_scene(SCENE, ["integrator.max_depth=-1"]).scene, 8
+    return jf.load_scene(SCENE).scene, 16
 
 
 def _fit_render(jf, case: str):
@@ -93,8 +99,7 @@ def _build_jitted(jf, case: str):
 
     key = jax.random.key(0)
     if case in ("plain", "unbounded"):
-        scene = jf.load_scene(SCENE, ["integrator.max_depth=-1"] if case == "unbounded" else []).scene
-        spp = 16 if case == "plain" else 8
+        scene, spp = _plain_case(jf, case)
         return jax.jit(lambda k: jf.render(scene, k, spp)), (key,), scene.camera.width * scene.camera.height * spp
     f, y0, n_paths = _fit_render(jf, case)
     return jax.jit(jax.jacfwd(f, has_aux=True)), (y0,), n_paths
