@@ -205,6 +205,7 @@ class Tracer(NamedTuple):
     mix: float
     phase_lobe: float = 0.0
     barriers: bool = False
+    guard: Array | None = None  # a traced scalar for `computed_once`'s predicate (None: the camera's fov)
 
 
 def make_tracer(scene: Scene, pk: Packed, options: SamplingOptions, proposal=None) -> Tracer:
@@ -622,12 +623,15 @@ def computed_once(tr: Tracer, x):
     `lax.optimization_barrier` does not prevent it (the CPU pipeline removes barriers before fusion). A `lax.cond`
     on an unbatched, traced predicate is kept, and its operands are then computed once, into buffers, by the
     kernels before it. Both branches return `x`'s values (the second adds zeros, so XLA cannot merge the two), so
-    the predicate (the camera's fov is finite) decides nothing. Only on the CPU backend (`tr.barriers`); elsewhere
-    `x` is returned as it is. Where it pays is measured: `docs/results/bench/PROFILE.md`, session 7."""
+    the predicate decides nothing; it must only be a value XLA cannot fold to a constant: `tr.guard`, which the
+    render loops set from their own traced data (a uniform of the work item; the regenerating loop's queue
+    position), else whether the camera's fov is finite (a constant, and the barrier gone, when the scene is a
+    constant of the compiled program). Only on the CPU backend (`tr.barriers`); elsewhere `x` is returned as it
+    is. Where it pays is measured: `docs/results/bench/PROFILE.md`, session 7."""
     if not tr.barriers:
         return x
-    return jax.lax.cond(jnp.isfinite(tr.scene.camera.fov), lambda v: v,
-                        lambda v: jax.tree.map(lambda a: a + jnp.zeros_like(a), v), x)
+    pred = tr.guard if tr.guard is not None else jnp.isfinite(tr.scene.camera.fov)
+    return jax.lax.cond(pred, lambda v: v, lambda v: jax.tree.map(lambda a: a + jnp.zeros_like(a), v), x)
 
 
 def bounce(tr: Tracer, state: PathState, b, U) -> PathState:

@@ -91,9 +91,11 @@ def _run(scene: Scene, words, chunk_ids, valid, options: SamplingOptions, propos
         row, qid, b = pick(row_n, row), pick(q, qid), pick(jnp.zeros_like(b), b)
         U = jax.vmap(lambda qq, r, bb: hashed_uniforms(words[qq // chunk, 1], r, bb.astype(jnp.uint32) * K + cols)
                      )(qid, row, b)
-        # the refilled lanes and their uniforms computed once (`computed_once`): the bounce's stages all read them
-        state, U = computed_once(tracer, (state, U))
-        extra, new = step(tracer, extra, state, row, qid, b, U)
+        # the refilled lanes and their uniforms computed once (`computed_once`): the bounce's stages all read them;
+        # the barriers' guard is the queue position, a loop-carried value XLA cannot fold
+        tr = tracer._replace(guard=next_q >= 0)
+        state, U = computed_once(tr, (state, U))
+        extra, new = step(tr, extra, state, row, qid, b, U)
         return extra, new, row, qid, b + 1, next_q + jnp.sum(take.astype(jnp.int32))
 
     def cond(c):

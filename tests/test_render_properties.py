@@ -296,3 +296,6 @@ def test_computed_once_changes_no_value_or_derivative_and_stays_in_the_program()
 
         hlo = jax.jit(traced).lower(arrays, xs).compile().as_text()
         assert "conditional" in hlo
+        # a scene that is a constant of the program (closed over by the caller's jit): render's own guard keeps it
+        hlo = jax.jit(lambda k: jf.render(scene, k, 1)).lower(jax.random.key(0)).compile().as_text()
+        assert "conditional" in hlo
