@@ -96,7 +96,7 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
     def paths(U):
         """`vmap` of one path over the lanes, with the tracer's fusion-barrier guard taken from this work item's
         uniforms (traced data: the barrier survives even when the scene is a constant of the compiled program)."""
-        tr = tracer._replace(guard=jnp.isfinite(U.reshape(-1)[0]))
+        tr = tracer._replace(guard=jnp.isfinite(U.reshape(-1)[0])) if U.size else tracer  # no bounce: no barrier
 
         def one_path(pixel, U_p):
             o, d = cam.generate_ray(pixel)
