@@ -93,8 +93,8 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
     chunk, n_ch = n_chunks(scene, chunk_paths)
     G = valid.shape[1]
 
-    def paths(U):
-        """`vmap` of one path over the lanes, with the tracer's fusion-barrier guard taken from this work item's
+    def paths(pixels, U):
+        """The lanes' radiance (`vmap` of one path), the tracer's fusion-barrier guard taken from the lanes'
         uniforms (traced data: the barrier survives even when the scene is a constant of the compiled program)."""
         tr = tracer._replace(guard=jnp.isfinite(U.reshape(-1)[0])) if U.size else tracer  # no bounce: no barrier
 
@@ -102,7 +102,7 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
             o, d = cam.generate_ray(pixel)
             return trace_path(tr, o, d, U_p)
 
-        return jax.vmap(one_path)
+        return jax.vmap(one_path)(pixels, U)
 
     def draws(layer_id, row0, pix):
         """One layer's pixel positions and path uniforms for the chunk's rows (a function of the layer and the row
@@ -117,11 +117,11 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
         pix = jnp.stack([cols, rows], axis=-1).astype(jnp.float32)
         if G == 1:
             pixels, U = draws(layer_id, row0, pix)
-            radiance = jnp.where(ok[0], paths(U)(pixels, U), 0.0)
+            radiance = jnp.where(ok[0], paths(pixels, U), 0.0)
             terms = (radiance, radiance * radiance) if moments else (radiance,)
         else:  # G layers side by side: one pass of G * chunk paths, summed over the layers
             pixels, U = jax.vmap(lambda j: draws(layer_id + j, row0, pix))(jnp.arange(G, dtype=jnp.uint32))
-            radiance = paths(U)(pixels.reshape(G * chunk, 2), U.reshape(G * chunk, n_iter, K))
+            radiance = paths(pixels.reshape(G * chunk, 2), U.reshape(G * chunk, n_iter, K))
             radiance = jnp.where(ok[:, None, None], radiance.reshape(G, chunk, 3), 0.0)
             terms = (radiance.sum(0), (radiance * radiance).sum(0)) if moments else (radiance.sum(0),)
         add = lambda a, x: jax.lax.dynamic_update_slice_in_dim(
