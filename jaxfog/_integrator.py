@@ -249,12 +249,14 @@ class Hit(NamedTuple):
 
 class Segment(NamedTuple):
     """The free-flight decision on the segment to the hit: its length `s`, the equiangular samplers `eq` and
-    samples `t_eq` (one per point-like light), the branch probability `q`, `scattered`, the medium vertex's
-    distance `t` and point `p`, its density `pdf` (all techniques), and the two branch weights."""
+    samples `t_eq` (one per point-like light), the equiangular densities `p_eq` at the vertex distance `t` (one per
+    point-like light), the branch probability `q`, `scattered`, the medium vertex's distance `t` and point `p`, its
+    density `pdf` (all techniques), and the two branch weights."""
 
     s: Float[Array, ""]
     eq: tuple
     t_eq: tuple
+    p_eq: tuple
     q: Float[Array, ""]
     scattered: Bool[Array, ""]
     t: Float[Array, ""]
@@ -356,14 +358,15 @@ def pick(values, u):
 
 
 # ---------------------------------------------------------------------------------------------- free flight
-def vertex_pdf(tr: Tracer, o, d, s, q, eqs, t):
+def vertex_pdf(tr: Tracer, o, d, s, q, eqs, t, p_eqs):
     """Density of the path's medium vertex at distance `t` on the segment: the free-flight density (branch
-    probability `q` included), mixed with the equiangular densities when the distance mixture is on."""
+    probability `q` included), mixed with the equiangular densities `p_eqs` (each light's `equiangular_pdf` at `t`,
+    computed by the caller, who needs them too) when the distance mixture is on."""
     p_ff = tr.sampler.free_flight_pdf(o, d, s, q, t)
     if tr.mix == 0:
         return p_ff
-    p_eq = sum(jnp.where(e.valid, equiangular_pdf(e, t), tr.sampler.free_flight_pdf(o, d, s, 1.0, t))
-               for e in eqs) / len(eqs)
+    p_eq = sum(jnp.where(e.valid, pe, tr.sampler.free_flight_pdf(o, d, s, 1.0, t))
+               for e, pe in zip(eqs, p_eqs)) / len(eqs)
     return (1.0 - tr.mix) * p_ff + tr.mix * q * p_eq
 
 
@@ -376,10 +379,13 @@ def free_flight(tr: Tracer, state: PathState, hit: Hit, U) -> Segment:
     if tr.equiangular:
         a, b = med.fog_interval(o, d, s)  # (0, s) for fog that fills space
         for j, light in enumerate(tr.scene.point_lights):
-            t0, t1 = light.lit_interval(o, d)
-            e = equiangular_setup(light.position, o, d, jnp.maximum(a, t0), jnp.minimum(b, t1))
+            t0, t1 = computed_once(tr, light.lit_interval(o, d))  # (a spot's cone: ~35 operations)
+            e = equiangular_setup(light.position, o, d, jnp.maximum(a, t0), jnp.minimum(b, t1),
+                                  once=lambda x: computed_once(tr, x))
             eqs.append(e)
             t_eq.append(equiangular_sample(e, U[ly.equiangular[j]], s))
+        # every later value of the segment reads the samplers (the spot cone's interval, two arctangents)
+        eqs, t_eq = computed_once(tr, (eqs, t_eq))
     # the surface branch's share is kept >= 1 - Q_MAX_SURFACE only on view segments (from the camera or a specular
     # chain), where it lets the camera see surfaces behind thick fog; on the other segments it would multiply a long
     # path's weight by albedo m / q > 1 at every vertex near a surface and make the weights heavy-tailed
@@ -393,7 +399,8 @@ def free_flight(tr: Tracer, state: PathState, hit: Hit, U) -> Segment:
         t = jnp.where(use_eq, pick(t_eq, U[ly.mix_light]), t)
     t = jnp.where(fl.scattered, t, 0.0)
     p = o + t * d
-    pdf = vertex_pdf(tr, o, d, s, fl.q, eqs, t)
+    p_eq = tuple(equiangular_pdf(e, t) for e in eqs)
+    pdf = vertex_pdf(tr, o, d, s, fl.q, eqs, t, p_eq)
     if tr.mix > 0:
         w_med = med.scattering(p) * safe_div(med.transmittance(o, d, t), pdf)
     else:
@@ -403,13 +410,13 @@ def free_flight(tr: Tracer, state: PathState, hit: Hit, U) -> Segment:
     on_surf = state.in_medium & hit.found
     w_surf = jnp.where(on_surf, med.surface_weight(o, d, jnp.where(on_surf, s, 0.0),
                                                    jnp.where(on_surf, fl.log_one_minus_q, 0.0)), 1.0)
-    return Segment(s, tuple(eqs), tuple(t_eq), fl.q, fl.scattered, t, p, pdf, w_med, w_surf)
+    return Segment(s, tuple(eqs), tuple(t_eq), p_eq, fl.q, fl.scattered, t, p, pdf, w_med, w_surf)
 
 
 def no_flight(hit: Hit) -> Segment:
     """The segment of a scene without fog: always the surface branch, weight 1."""
     z, one = jnp.float32(0.0), jnp.ones(3, jnp.float32)
-    return Segment(hit.t, (), (), z, jnp.bool_(False), z, hit.p, z, one, one)
+    return Segment(hit.t, (), (), (), z, jnp.bool_(False), z, hit.p, z, one, one)
 
 
 # ----------------------------------------------------------------------------------------------- direct light
@@ -418,15 +425,16 @@ def direct_on_segment(tr: Tracer, state: PathState, seg: Segment, ok) -> Float[A
     MIS (balance heuristic) with the path's own medium vertex."""
     med, pk, o, d = tr.medium, tr.pk, state.o, state.d
     L = jnp.zeros(3, jnp.float32)
-    for light, e, te in zip(tr.scene.point_lights, seg.eq, seg.t_eq):
+    for j, (light, e, te) in enumerate(zip(tr.scene.point_lights, seg.eq, seg.t_eq)):
         p_eq = equiangular_pdf(e, te)
+        p_eqs = tuple(p_eq if k == j else equiangular_pdf(ek, te) for k, ek in enumerate(seg.eq))
         xe = o + te * d
         ls = light.sample_li(xe)
         vis = ~occluded(pk, xe, ls.wi, ls.dist)
         f = med.scattering(xe) * med.transmittance(o, d, te) * med.phase.eval(d, ls.wi)
         use = ok & state.in_medium & e.valid & vis & (p_eq > 0)
         # double where: an unused sample's MIS denominator can be ~1e-30 (dense fog), whose 1/x^2 overflows
-        p_all = jnp.where(use, p_eq + vertex_pdf(tr, o, d, seg.s, seg.q, seg.eq, te), 1.0)
+        p_all = jnp.where(use, p_eq + vertex_pdf(tr, o, d, seg.s, seg.q, seg.eq, te, p_eqs), 1.0)
         c = state.beta * f * ls.value * med.transmittance(xe, ls.wi, ls.dist) * safe_div(1.0, p_all)
         L = L + jnp.where(use, c, 0.0)
     return L
@@ -451,7 +459,7 @@ def nee(tr: Tracer, U, p, shadow_o, response: Callable, dir_pdf: Callable, beta,
         c = beta * response(ls.wi) * ls.value * tr_l
         if light.is_delta:
             if seg is not None and id(light) in point_index:
-                p_eq = equiangular_pdf(seg.eq[point_index[id(light)]], seg.t)
+                p_eq = seg.p_eq[point_index[id(light)]]
                 c = c * jnp.where(seg.scattered, safe_div(seg.pdf, seg.pdf + p_eq), 1.0)
             L = L + jnp.where(ok & vis, c, 0.0)
         else:
@@ -534,21 +542,27 @@ def medium_vertex(tr: Tracer, state: PathState, seg: Segment, dr: Direction) -> 
     return Next(seg.p, dr.wo, beta_next, f, pdf, t, state.in_medium)
 
 
-def surface_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, dr: Direction, U):
-    """Emission of an area light hit by the path (MIS with the light's sampling), and the BSDF's continuation.
-    Returns `(L, Next)`."""
+def emission(tr: Tracer, state: PathState, hit: Hit, seg: Segment) -> Float[Array, "3"]:
+    """Emission of an area light hit by the path on its surface branch (MIS with the light's sampling; weight 1
+    after a specular direction), RGB."""
+    L = jnp.zeros(3, jnp.float32)
+    surf = state.alive & ~seg.scattered & hit.found
+    for light, shape in zip(tr.scene.area_lights, tr.pk.emitter_shape):
+        w = jnp.where(state.specular, 1.0, power_heuristic(state.pdf_dir, light.pdf_li(state.o, state.d, hit.t)))
+        L = L + jnp.where(surf & (hit.idx == shape), state.beta * seg.w_surf * light.emitted(state.d) * w, 0.0)
+    return L
+
+
+def surface_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, dr: Direction, U) -> Next:
+    """The BSDF's continuation from the surface vertex (a path that hits an area light ends there)."""
     pk, ly, d, n = tr.pk, tr.layout, state.d, hit.n
     beta = state.beta * seg.w_surf
     surf = state.alive & ~seg.scattered & hit.found
     front = dot(d, n) < 0
-    L = jnp.zeros(3, jnp.float32)
     wo, beta_next, spec, pdf, alive, in_med = d, beta, jnp.bool_(True), jnp.float32(0.0), surf, state.in_medium
     if pk.n_shapes == 0:
-        return L, Next(hit.p, wo, beta_next, spec, pdf, alive, in_med)
+        return Next(hit.p, wo, beta_next, spec, pdf, alive, in_med)
     kind = jnp.asarray(pk.bsdf_kind)[hit.idx]
-    for light, shape in zip(tr.scene.area_lights, pk.emitter_shape):
-        w = jnp.where(state.specular, 1.0, power_heuristic(state.pdf_dir, light.pdf_li(state.o, d, hit.t)))
-        L = L + jnp.where(surf & (hit.idx == shape), beta * light.emitted(d) * w, 0.0)
     if tr.scene.area_lights:
         alive = alive & (kind != EMITTER_KIND)
     for k, t in enumerate(pk.bsdf_types):
@@ -566,7 +580,7 @@ def surface_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, dr: Dir
             wo, beta_next = jnp.where(is_k, bs.wo, wo), jnp.where(is_k, beta * bs.weight, beta_next)
             in_med = jnp.where(is_k & bs.transmitted, ~front, in_med)
     side = jnp.where(dot(wo, n) >= 0, 1.0, -1.0)  # rays leave a surface from the side they go to
-    return L, Next(hit.p + side * EPS_OFFSET * n, wo, beta_next, spec, pdf, alive, in_med)
+    return Next(hit.p + side * EPS_OFFSET * n, wo, beta_next, spec, pdf, alive, in_med)
 
 
 def direct_at_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, ok, U):
@@ -634,20 +648,29 @@ def computed_once(tr: Tracer, x):
     return jax.lax.cond(pred, lambda v: v, lambda v: jax.tree.map(lambda a: a + jnp.zeros_like(a), v), x)
 
 
-def bounce(tr: Tracer, state: PathState, b, U) -> PathState:
+def bounce(tr: Tracer, state: PathState, b, U, last=None) -> PathState:
     """One segment of the path and its vertex: the stages in order (the segment and the direction each computed
-    once, `computed_once`: every later stage reads them)."""
+    once, `computed_once`: every later stage reads them).
+
+    `last`: None, or a traced, unbatched bool that is True on the path's last segment, whose continuation (the
+    scattering direction and the vertex's throughput) nothing reads: it is then skipped (`lax.cond`), and the
+    state keeps its direction and throughput, with the new radiance. The radiance is the same either way."""
     nee_ok = state.alive if tr.scene.max_depth == -1 else state.alive & (b + 2 <= tr.scene.max_depth)
     hit = intersect(tr.pk, state.o, state.d)
     seg = computed_once(tr, free_flight(tr, state, hit, U) if tr.medium is not None else no_flight(hit))
     L = state.L
     if tr.equiangular:
         L = L + direct_on_segment(tr, state, seg, nee_ok)
-    dr = computed_once(tr, next_direction(tr, state, hit, seg, U))
-    med = medium_vertex(tr, state, seg, dr) if tr.medium is not None else None
-    L_e, surf = surface_vertex(tr, state, hit, seg, dr, U)
-    L = L + L_e + direct_at_vertex(tr, state, hit, seg, nee_ok, U)
-    return update(state, seg, L, med, surf)
+    L = L + emission(tr, state, hit, seg) + direct_at_vertex(tr, state, hit, seg, nee_ok, U)
+
+    def continuation(L):
+        dr = computed_once(tr, next_direction(tr, state, hit, seg, U))
+        med = medium_vertex(tr, state, seg, dr) if tr.medium is not None else None
+        return update(state, seg, L, med, surface_vertex(tr, state, hit, seg, dr, U))
+
+    if last is None:
+        return continuation(L)
+    return jax.lax.cond(last, lambda L: state._replace(L=L), continuation, L)
 
 
 def start_path(o, d) -> PathState:
@@ -681,7 +704,10 @@ def trace_path(tr: Tracer, o, d, U) -> Float[Array, "3"]:
     init = start_path(o, d)
     if U.shape[0] == 0:
         return init.L
-    body = jax.checkpoint(lambda state, xs: (bounce(tr, state, xs[0], Uniforms(xs[1])), None))
+    n = U.shape[0]
+    # the last segment's continuation is skipped where conditionals are cheap (the CPU backend, `tr.barriers`)
+    last = (lambda b: b == n - 1) if tr.barriers else (lambda b: None)
+    body = jax.checkpoint(lambda state, xs: (bounce(tr, state, xs[0], Uniforms(xs[1]), last(xs[0])), None))
     final, _ = jax.lax.scan(body, init, (jnp.arange(U.shape[0]), tuple(U[:, k] for k in range(U.shape[1]))))
     return final.L
 

@@ -22,6 +22,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._integrator import (
     SamplingOptions,
+    computed_once,
     make_tracer,
     n_dims,
     n_iterations,
@@ -104,23 +105,26 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
 
         return jax.vmap(one_path)(pixels, U)
 
-    def draws(layer_id, row0, pix):
+    def draws(layer_id, row0, pix, once=lambda x: x):
         """One layer's pixel positions and path uniforms for the chunk's rows (a function of the layer and the row
-        only, so of neither the chunking nor the grouping)."""
+        only, so of neither the chunking nor the grouping); `once`: the hash's fusion barrier."""
         k_pix, k_path = jax.random.split(jax.random.fold_in(key, layer_id))
-        return pix + uniforms(k_pix, chunk, 2, row0), uniforms(k_path, chunk, n_iter * K, row0).reshape(chunk, n_iter, K)
+        U = uniforms(k_path, chunk, n_iter * K, row0, once).reshape(chunk, n_iter, K)
+        return pix + uniforms(k_pix, chunk, 2, row0), U
 
     def step(acc, xs):
         layer_id, chunk_id, ok = xs
         row0 = chunk_id * chunk
         rows, cols = jnp.divmod((row0 + jnp.arange(chunk, dtype=jnp.uint32)) % (H * W), W)
         pix = jnp.stack([cols, rows], axis=-1).astype(jnp.float32)
+        # the hash's fusion barrier, guarded by the item's layer (traced data; its value decides nothing)
+        once = lambda x: computed_once(tracer._replace(guard=layer_id != 0), x)
         if G == 1:
-            pixels, U = draws(layer_id, row0, pix)
+            pixels, U = draws(layer_id, row0, pix, once)
             radiance = jnp.where(ok[0], paths(pixels, U), 0.0)
             terms = (radiance, radiance * radiance) if moments else (radiance,)
         else:  # G layers side by side: one pass of G * chunk paths, summed over the layers
-            pixels, U = jax.vmap(lambda j: draws(layer_id + j, row0, pix))(jnp.arange(G, dtype=jnp.uint32))
+            pixels, U = jax.vmap(lambda j: draws(layer_id + j, row0, pix, once))(jnp.arange(G, dtype=jnp.uint32))
             radiance = paths(pixels.reshape(G * chunk, 2), U.reshape(G * chunk, n_iter, K))
             radiance = jnp.where(ok[:, None, None], radiance.reshape(G, chunk, 3), 0.0)
             terms = (radiance.sum(0), (radiance * radiance).sum(0)) if moments else (radiance.sum(0),)

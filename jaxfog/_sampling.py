@@ -190,29 +190,43 @@ HALF_PI_BELOW = 1.5707962
 """The largest float32 below pi/2: float32(pi/2) is above pi/2, where tan flips sign."""
 
 
+TAN_HALF_PI_BELOW = 13245400.0
+"""tan(HALF_PI_BELOW), rounded down to a float32: the largest `(t - delta) / D` the clipped angles reach."""
+
+
 class Equiangular(NamedTuple):
     """Kulla–Fajardo equiangular sampling of `t` in `[ta, tb]` along a ray toward a point `c`: `delta = dot(c - o, d)`
     (the ray parameter of the closest approach), `D` its distance (floored at 1e-7), the angles `theta_a`, `theta_b`
-    of the interval's ends seen from `c`, and `valid` (a non-empty interval)."""
+    of the interval's ends seen from `c`, `valid` (a non-empty interval), and the interval's ends `t_a`, `t_b` as
+    the clipped angles reach them (scene units; `equiangular_pdf` compares distances, not angles)."""
 
     delta: Float[Array, ""]
     D: Float[Array, ""]
     theta_a: Float[Array, ""]
     theta_b: Float[Array, ""]
     valid: Bool[Array, ""]
+    t_a: Float[Array, ""]
+    t_b: Float[Array, ""]
 
 
-def equiangular_setup(c, o, d, ta, tb) -> Equiangular:
-    """The equiangular sampler of `t` in `[ta, tb]` (scene units) on the ray `o + t d` (unit `d`) toward the point `c`."""
+def equiangular_setup(c, o, d, ta, tb, once: Callable = lambda x: x) -> Equiangular:
+    """The equiangular sampler of `t` in `[ta, tb]` (scene units) on the ray `o + t d` (unit `d`) toward the point `c`.
+
+    `once(x)` returns the pytree `x` unchanged; the tracer passes its fusion barrier, which makes XLA compute the
+    two arctangents once, not inside every value that reads them (speed only)."""
     delta = dot(c - o, d)
     v = c - o - delta * d
     D = jnp.maximum(safe_sqrt(dot(v, v)), 1e-7)
     valid = tb > ta
     ta = jnp.where(valid, ta, 0.0)
     tb = jnp.where(valid, tb, 1.0)
-    th_a = jnp.clip(atan2(ta - delta, D), -HALF_PI_BELOW, HALF_PI_BELOW)
-    th_b = jnp.clip(atan2(tb - delta, D), -HALF_PI_BELOW, HALF_PI_BELOW)
-    return Equiangular(delta, D, th_a, th_b, valid & (th_b > th_a))
+    th_a, th_b = once((jnp.clip(atan2(ta - delta, D), -HALF_PI_BELOW, HALF_PI_BELOW),
+                       jnp.clip(atan2(tb - delta, D), -HALF_PI_BELOW, HALF_PI_BELOW)))
+    # the ends the clipped angles reach: [ta, tb] itself unless an end is beyond tan(HALF_PI_BELOW) D of delta
+    reach = TAN_HALF_PI_BELOW * D
+    t_a = jnp.maximum(ta, delta - reach)
+    t_b = jnp.minimum(tb, delta + reach)
+    return Equiangular(delta, D, th_a, th_b, valid & (th_b > th_a), t_a, t_b)
 
 
 def equiangular_sample(eq: Equiangular, u: Float[Array, ""], s: Float[Array, ""]) -> Float[Array, ""]:
@@ -222,12 +236,24 @@ def equiangular_sample(eq: Equiangular, u: Float[Array, ""], s: Float[Array, ""]
     return jnp.clip(jnp.where(eq.valid, eq.delta + eq.D * tan(th), 0.0), 0.0, s)
 
 
+EQUIANGULAR_ANGLE_TOL = 1e-6
+"""Angle (radians) by which `equiangular_pdf` widens the sampled interval at each end, so that a sample whose
+`delta + D tan(theta)` rounds just outside `[t_a, t_b]` keeps its density."""
+
+
 def equiangular_pdf(eq: Equiangular, t: Float[Array, ""]) -> Float[Array, ""]:
-    """Density (1/scene unit) of `equiangular_sample` at `t`: `D / ((theta_b - theta_a) (D^2 + (t - delta)^2))`."""
+    """Density (1/scene unit) of `equiangular_sample` at `t`: `D / ((theta_b - theta_a) (D^2 + (t - delta)^2))`
+    inside the interval, else 0.
+
+    The interval test compares distances: `t` in `[t_a - e, t_b + e]` with `e = EQUIANGULAR_ANGLE_TOL (D^2 + r^2) /
+    D`, the distance an angle step of `EQUIANGULAR_ANGLE_TOL` moves `t` at `r = t - delta` (no arctangent: this
+    density is evaluated several times per bounce). The ends are finite and `r` is a distance on the segment, so
+    nothing overflows for rays grazing the light."""
     r = t - eq.delta
-    th = atan2(r, eq.D)  # compare angles, not tan(theta) * D, which overflows for rays grazing the light
-    inside = eq.valid & (th >= eq.theta_a - 1e-6) & (th <= eq.theta_b + 1e-6)
-    return jnp.where(inside, eq.D / (jnp.where(eq.valid, eq.theta_b - eq.theta_a, 1.0) * (eq.D * eq.D + r * r)), 0.0)
+    den = eq.D * eq.D + r * r  # >= 1e-14
+    tol = EQUIANGULAR_ANGLE_TOL * den / eq.D
+    inside = eq.valid & (t >= eq.t_a - tol) & (t <= eq.t_b + tol)
+    return jnp.where(inside, eq.D / (jnp.where(eq.valid, eq.theta_b - eq.theta_a, 1.0) * den), 0.0)
 
 
 # --------------------------------------------------------------------------------------------------------- MIS

@@ -263,6 +263,35 @@ def test_equiangular_sampler_follows_its_pdf():
     assert pv > P_MIN, (stat, pv)
 
 
+def test_equiangular_pdf_tests_the_interval_in_distances_as_the_angles_do():
+    """`equiangular_pdf` decides "inside the sampled interval" by comparing distances (`t_a`, `t_b`, widened by the
+    distance an angle of EQUIANGULAR_ANGLE_TOL moves t), not arctangents. It must agree with the angle test
+    (float64 reference) everywhere outside that tolerance band, including a ray that grazes the light (D ~ 1e-6),
+    an interval with an infinite end (clipped at HALF_PI_BELOW) and an empty one, and give the formula's value."""
+    rng = np.random.default_rng(5)
+    o = jnp.zeros(3, jnp.float32)
+    d = jnp.array([0.0, 0.0, -1.0], jnp.float32)
+    cases = [((0.5, 1.0, -2.0), 0.5, 6.0), ((1e-6, 0.0, -3.0), 0.2, 8.0), ((0.3, 0.0, -1.0), 0.0, np.inf),
+             ((0.2, 0.1, -50.0), 1.0, 2.0), ((0.4, 0.0, -1.0), 3.0, 2.0)]
+    for c, ta, tb in cases:
+        eq = S.equiangular_setup(jnp.asarray(c, jnp.float32), o, d, jnp.float32(ta), jnp.float32(tb))
+        t = np.concatenate([rng.uniform(0.0, 12.0, 4000), [ta, min(tb, 1e3), 0.0, 2.99, 3.0]]).astype(np.float32)
+        p = np.asarray(jax.vmap(lambda x: S.equiangular_pdf(eq, x))(jnp.asarray(t)), np.float64)
+        delta, D = float(eq.delta), float(eq.D)
+        th = np.arctan2(t.astype(np.float64) - delta, D)
+        th_a, th_b = float(eq.theta_a), float(eq.theta_b)
+        valid = bool(eq.valid)
+        assert valid == (tb > ta)
+        inside = valid & (th >= th_a) & (th <= th_b)
+        band = (np.abs(th - th_a) < 2e-6) | (np.abs(th - th_b) < 2e-6)
+        assert np.array_equal(p[~band] > 0, inside[~band]), (c, ta, tb)
+        if valid:
+            expect = D / ((th_b - th_a) * (D * D + (t - delta) ** 2))
+            np.testing.assert_allclose(p[inside & ~band], expect[inside & ~band], rtol=2e-5)
+        g = jax.grad(lambda x: S.equiangular_pdf(eq, x))(jnp.float32(2.0))
+        assert np.isfinite(float(g))
+
+
 def test_truncated_exponential_pdf_integrates_to_one():
     x, w = np.polynomial.legendre.leggauss(64)
     for rate, s in ((0.5, 3.0), (4.0, 2.0), (1e-4, 10.0)):

@@ -105,3 +105,23 @@ def test_blocks_of_rows_match_the_whole_table(u):
     np.testing.assert_array_equal(np.asarray(uniforms(key, 1000, N_COLS, 5000), np.float64), u[5000:6000])
     blk = jax.jit(lambda r: uniforms(key, 1024, N_COLS, r))(jnp.uint32(15360))
     np.testing.assert_array_equal(np.asarray(blk, np.float64), u[15360:])
+
+
+def test_the_hash_barrier_changes_no_number():
+    """`uniforms(..., once=barrier)` (the renderer's fusion barrier on the row and column hashes) draws bitwise the
+    numbers `uniforms` draws without it."""
+    from jaxfog._integrator import computed_once, make_tracer, SamplingOptions
+    from jaxfog._scene import pack
+    import jaxfog as jf
+
+    scene = jf.load_scene("data_synthetic/scenes/spot_fog.json").scene
+    tr = make_tracer(scene, pack(scene), SamplingOptions())._replace(barriers=True)
+    key = jax.random.key(11)
+
+    @jax.jit
+    def both(row0):
+        tr_g = tr._replace(guard=row0 != 7)
+        return uniforms(key, 64, 45, row0), uniforms(key, 64, 45, row0, lambda x: computed_once(tr_g, x))
+
+    a, b = both(jnp.uint32(1000))
+    assert np.array_equal(np.asarray(a), np.asarray(b))

@@ -299,3 +299,41 @@ def test_computed_once_changes_no_value_or_derivative_and_stays_in_the_program()
         # a scene that is a constant of the program (closed over by the caller's jit): render's own guard keeps it
         hlo = jax.jit(lambda k: jf.render(scene, k, 1)).lower(jax.random.key(0)).compile().as_text()
         assert "conditional" in hlo
+
+
+@pytest.mark.parametrize("scene_name", ["fog", "area"])
+def test_skipping_the_last_segments_continuation_changes_no_radiance_or_derivative(scene_name):
+    """On the CPU the tracer skips the continuation (direction, throughput) of a path's last segment, which no
+    radiance reads (`bounce(..., last=...)`). The radiance of a batch of paths and its derivative in sigma_t equal
+    those of the tracer without the skip (and without fusion barriers) up to float32 rounding; with an area light
+    (whose last segment only matters when it hits the light) as well as with a point light in fog."""
+    from jaxfog._integrator import make_tracer, n_dims, n_iterations, trace_path
+    from jaxfog._scene import pack
+
+    if scene_name == "fog":
+        scene = fog_scene()
+    else:
+        scene = jf.load_scene("data_synthetic/scenes/area_light.json", ["integrator.max_depth=3"]).scene
+    n_iter, K = n_iterations(scene), n_dims(scene)
+    U = jax.random.uniform(jax.random.key(4), (256, n_iter, K), jnp.float32)
+    cam = scene.camera
+    pix = jax.random.uniform(jax.random.key(5), (256, 2)) * jnp.array([[cam.width, cam.height]], jnp.float32)
+
+    def radiance(sc, barriers):
+        tr = make_tracer(sc, pack(sc), jf.SamplingOptions())._replace(barriers=barriers, guard=U[0, 0, 0] >= 0)
+        return jax.vmap(lambda p, u: trace_path(tr, *sc.camera.generate_ray(p), u))(pix, U)
+
+    def total(scale, barriers):
+        sc = scene.replace_medium(sigma_t=scene.medium.sigma_t * scale) if scene.medium is not None else scene
+        return radiance(sc, barriers).sum()
+
+    a, b = radiance(scene, True), radiance(scene, False)
+    assert float(jnp.abs(a).max()) > 0
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-4 * float(jnp.abs(b).max()))
+    if scene.medium is not None:
+        ga = jax.grad(total)(jnp.float32(1.0), True)
+        gb = jax.grad(total)(jnp.float32(1.0), False)
+        assert float(gb) != 0.0
+        assert float(ga) == pytest.approx(float(gb), rel=1e-4)
+    hlo = jax.jit(lambda u: radiance(scene, True)).lower(U).compile().as_text()
+    assert "conditional" in hlo
