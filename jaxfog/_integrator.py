@@ -509,7 +509,7 @@ def lobe_pdf(tr: Tracer, w, x):
     """Density of the light-angle lobe at `w` from `x`, averaged over the point-like lights (with `phase_lobe`, the
     mixture of the angle profile and the sampler's phase function about the direction to the light)."""
     def one(light):
-        p = light_lobe_pdf(w, x, light.position)
+        p = light_lobe_pdf(w, x, light.position, once=lambda v: computed_once(tr, v))
         if tr.phase_lobe == 0:
             return p
         q = tr.sampler.phase.pdf_polar(one_minus_cos_between(w, safe_normalize(light.position - x)))

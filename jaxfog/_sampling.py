@@ -149,7 +149,8 @@ def light_lobe_sample(u: Float[Array, "2"], x: Float[Array, "3"], light_pos: Flo
     return to_direction(light_lobe_cos(u[0]), u[1], safe_normalize(light_pos - x))
 
 
-def light_lobe_pdf(w: Float[Array, "3"], x: Float[Array, "3"], light_pos: Float[Array, "3"]) -> Float[Array, ""]:
+def light_lobe_pdf(w: Float[Array, "3"], x: Float[Array, "3"], light_pos: Float[Array, "3"],
+                   once: Callable = lambda x: x) -> Float[Array, ""]:
     """Solid-angle pdf of `light_lobe_sample`: `(pi - alpha) / (pi^3 sin alpha)` (1/sr; its limit 1/pi^3 at
     alpha = pi; 0 at exactly alpha = 0, where it is infinite, a direction the sampler produces with probability 0).
 
@@ -157,9 +158,10 @@ def light_lobe_pdf(w: Float[Array, "3"], x: Float[Array, "3"], light_pos: Float[
     to the light passes it at `D = r sin alpha` and, unattenuated and isotropically scattered, collects light
     `(pi - alpha) / D` (the angle the ray subtends at the light over D). So the lobe cancels the `1/D` of the light
     scattered along a segment passing near a point light (docs/estimators.md), for any direction the mixture
-    produces."""
+    produces. `once(x)` returns `x` unchanged (a caller's fusion barrier: the angle's cosine, a reduction over the
+    vector components, is then computed apart from the scalar arithmetic after it; speed only)."""
     a = safe_normalize(light_pos - x)
-    omc = one_minus_cos_between(w, a)
+    omc = once(one_minus_cos_between(w, a))
     sin_a = safe_sqrt(omc * jnp.maximum(2.0 - omc, 0.0))
     beta = atan2(sin_a, omc - 1.0)  # pi - alpha, accurate near alpha = pi
     # double where: beta / sin(beta) -> 1 at beta = 0 (alpha = pi); beta = pi with sin_a = 0 (alpha = 0) gives 0
