@@ -13,6 +13,7 @@ Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line 
 - `jvp256`: the same at 256 spp (the fit's default spp: one call per view and Levenberg-Marquardt step).
 - `call`: the same at 2 spp (128 paths): the fixed cost of one `render` call under `jax.jacfwd` (its figures are
   per path too: multiply by 128 for the time per call).
+- `plaincall`: `render(spot_fog at 8 x 8 px, key, 1)` (64 paths): the fixed cost of a plain call (multiply by 64).
 
 Each case is compiled once (the first call, reported apart), then timed `--reps` times, in us per path (one path =
 one sample of one pixel), wall-clock and process CPU time (all threads; steadier than wall time on a shared machine).
@@ -38,7 +39,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "docs" / "results" / "bench" / "sample"
 SCENE = REPO / "data_synthetic" / "scenes" / "spot_fog.json"
-CASES = ("plain", "unbounded", "jvp", "jvp256", "call")
+CASES = ("plain", "unbounded", "jvp", "jvp256", "call", "plaincall")
 
 
 def _build(jf, case: str):
@@ -47,7 +48,7 @@ def _build(jf, case: str):
     import jax
 
     key = jax.random.key(0)
-    if case in ("plain", "unbounded"):
+    if case in ("plain", "unbounded", "plaincall"):
         scene, spp = _plain_case(jf, case)
 
         def fn():
@@ -69,6 +70,8 @@ def _plain_case(jf, case: str):
     """`(scene, spp)` of a plain-render case: spot_fog at 16 spp, or with paths of any length at 8 spp."""
     if case == "unbounded":
         return jf.load_scene(SCENE, ["integrator.max_depth=-1"]).scene, 8
+    if case == "plaincall":
+        return jf.load_scene(SCENE, ["camera.width=8", "camera.height=8"]).scene, 1
     return jf.load_scene(SCENE).scene, 16
 
 
@@ -98,7 +101,7 @@ def _build_jitted(jf, case: str):
     import jax
 
     key = jax.random.key(0)
-    if case in ("plain", "unbounded"):
+    if case in ("plain", "unbounded", "plaincall"):
         scene, spp = _plain_case(jf, case)
         return jax.jit(lambda k: jf.render(scene, k, spp)), (key,), scene.camera.width * scene.camera.height * spp
     f, y0, n_paths = _fit_render(jf, case)

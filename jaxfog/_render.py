@@ -10,14 +10,15 @@ depends only on the scene, the key and spp (never on the batch size), and memory
 
 from __future__ import annotations
 
-from functools import partial
+import weakref
+from functools import lru_cache, partial
 from typing import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._integrator import (
@@ -252,6 +253,7 @@ def render(
     H, W = scene.camera.height, scene.camera.width
     chunks = jnp.asarray(item % n_ch, jnp.uint32)
     total = None
+    scene, key, proposal = _replicated((scene, key, proposal), n_dev)
     for start in range(0, spp, per):
         first = start + (item // n_ch) * group  # each item's first layer; padding items start past the batch
         valid = (first[:, None] + np.arange(group)[None, :]) < min(start + per, spp)
@@ -262,6 +264,45 @@ def render(
         if progress is not None:
             progress(min(spp, start + per), spp)
     return _finish(total, spp, (H, W, 3))
+
+
+PLACED_MAX_ELEMENTS = 1 << 16
+"""Largest array (elements) whose replicated copy `_replicated` keeps for the next call."""
+
+_PLACED: dict = {}  # id(array) -> (weak reference to the array, its copy on every device)
+
+
+@lru_cache(maxsize=None)
+def _replicated_sharding(n_dev: int) -> NamedSharding:
+    return NamedSharding(Mesh(np.asarray(jax.local_devices()[:n_dev]), ("d",)), PartitionSpec())
+
+
+def _replicated(tree, n_dev: int):
+    """`tree` with each concrete array leaf on all of the first `n_dev` devices (the layout `_render_items` reads
+    the scene in), each array copied there once and the copy reused while the array lives: a scene rendered again
+    and again (the fit; a small image per call) is then not copied to every device on every call, which was most
+    of the fixed cost of a call (`docs/results/bench/PROFILE.md`). Arrays of more than `PLACED_MAX_ELEMENTS`
+    elements are copied each call (no copy is kept); traced values (under `jax.jit`, `jax.jacfwd`) are left as
+    they are. Speed only: the values are the same."""
+    if n_dev == 1:
+        return tree
+    sharding = _replicated_sharding(n_dev)
+
+    def place(x):
+        if not isinstance(x, jax.Array) or isinstance(x, jax.core.Tracer):
+            return x
+        if x.sharding == sharding:
+            return x
+        hit = _PLACED.get(id(x))
+        if hit is not None and hit[0]() is x:
+            return hit[1]
+        y = jax.device_put(x, sharding)
+        if x.size <= PLACED_MAX_ELEMENTS:
+            i = id(x)  # the entry goes when the array does, before its id can be reused
+            _PLACED[i] = (weakref.ref(x, lambda _, i=i: _PLACED.pop(i, None)), y)
+        return y
+
+    return jax.tree.map(place, tree)
 
 
 @jax.jit

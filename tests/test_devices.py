@@ -97,3 +97,54 @@ def test_the_rounding_comparison_can_fail():
     c[5, 5, 0] = -a[5, 5, 0]  # negative radiance: more than any flip of non-negative paths can change
     with pytest.raises(AssertionError):
         assert_same_render_up_to_rounding(a, c, spp=4)
+
+
+PLACEMENT_SCRIPT = r"""
+import gc, json
+import jaxfog
+jaxfog.use_cpu_cores(2)
+import jax, jax.numpy as jnp, numpy as np
+from jaxfog import _render as R
+
+sc = jaxfog.load_scene("data_synthetic/scenes/spot_fog.json", ["camera.width=8", "camera.height=8"]).scene
+key = jax.random.key(4)
+values = lambda x: np.asarray(jax.random.key_data(x) if jnp.issubdtype(x.dtype, jax.dtypes.prng_key) else x)
+a, b = R._replicated((sc, key), 2), R._replicated((sc, key), 2)
+la, lb, lo = jax.tree.leaves(a), jax.tree.leaves(b), jax.tree.leaves((sc, key))
+out = {"n_leaves": len(lo),
+       "reused": all(x is y for x, y in zip(la, lb)),
+       "same_values": all(np.array_equal(values(x), values(y)) for x, y in zip(la, lo)),
+       "on_both": all(x.sharding == R._replicated_sharding(2) for x in la),
+       "cached": len(R._PLACED)}
+del a, b, la, lb, lo
+img = np.asarray(jaxfog.render(sc, key, 4))
+img_again = np.asarray(jaxfog.render(sc, key, 4))
+# a scene whose arrays are committed to one device (the output of a jitted function) renders the same image
+sc1 = jax.tree.map(lambda x: jax.device_put(x, jax.devices()[1]) if isinstance(x, jax.Array) else x, sc)
+img_committed = np.asarray(jaxfog.render(sc1, key, 4))
+big = jnp.ones(R.PLACED_MAX_ELEMENTS + 1)
+R._replicated(big, 2)
+out["big_cached"] = id(big) in R._PLACED
+out["tracer_kept"] = bool(jax.jit(lambda x: jnp.asarray(R._replicated(x, 2) is x))(jnp.ones(3)))
+del sc, sc1, key
+gc.collect()
+out["cached_after_del"] = len(R._PLACED)
+out["images_equal"] = bool(np.array_equal(img, img_again)) and bool(np.array_equal(img, img_committed))
+out["image_mean"] = float(img.mean())
+print(json.dumps(out))
+"""
+
+
+def test_the_scene_is_copied_to_the_devices_once_and_released_with_it():
+    """`render` copies the scene's arrays to every device once and reuses the copies while the arrays live (the fixed
+    cost of a call): the copies hold the same values, on both devices; the cache lets go of them with the scene,
+    keeps no copy of a large array, leaves traced values alone, and the image is the same on the second call and for
+    a scene committed to one device."""
+    p = subprocess.Popen([sys.executable, "-c", PLACEMENT_SCRIPT], cwd=REPO, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    r = _result(p)
+    assert r["n_leaves"] > 10 and r["reused"] and r["same_values"] and r["on_both"], r
+    assert r["cached"] >= r["n_leaves"] - 1, r  # every leaf (equal leaves may be one array)
+    assert not r["big_cached"] and r["tracer_kept"], r
+    assert r["cached_after_del"] == 0, r
+    assert r["images_equal"] and r["image_mean"] > 0, r
