@@ -6,6 +6,7 @@
 
 Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line tools and the fit run):
 - `plain`: `render(spot_fog, key, 16)` at 128 x 128, max_depth 8 (the defaults).
+- `techniques`: the same with Mitsuba's techniques only (`equiangular=False, light_lobe=0, distance_mix=0`).
 - `unbounded`: the same scene with `max_depth = -1` (paths of any length, Russian roulette), 8 spp.
 - `jvp`: the fit's program: `jax.jacfwd` over (sigma_t, g) of `render(..., estimator="proposal", proposal=<the
   medium at the same values>, variance=True)` of spot_fog downscaled to 8 x 8 px (the camera's fov kept), 2048 spp
@@ -14,6 +15,7 @@ Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line 
 - `call`: the same at 2 spp (128 paths): the fixed cost of one `render` call under `jax.jacfwd` (its figures are
   per path too: multiply by 128 for the time per call).
 - `plaincall`: `render(spot_fog at 8 x 8 px, key, 1)` (64 paths): the fixed cost of a plain call (multiply by 64).
+- `scene:NAME`: `render(NAME, key, 4)`, a shipped scene (`data_synthetic/scenes/NAME.json`) at its own size.
 
 Each case is compiled once (the first call, reported apart), then timed `--reps` times, in us per path (one path =
 one sample of one pixel), wall-clock and process CPU time (all threads; steadier than wall time on a shared machine).
@@ -39,7 +41,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "docs" / "results" / "bench" / "sample"
 SCENE = REPO / "data_synthetic" / "scenes" / "spot_fog.json"
-CASES = ("plain", "unbounded", "jvp", "jvp256", "call", "plaincall")
+TECHNIQUES = {"equiangular": False, "light_lobe": 0.0, "distance_mix": 0.0}
+"""Mitsuba's techniques only: free flight, phase / BSDF sampling, one light sample per vertex."""
+CASES = ("plain", "techniques", "unbounded", "jvp", "jvp256", "call", "plaincall")
 
 
 def _build(jf, case: str):
@@ -48,11 +52,19 @@ def _build(jf, case: str):
     import jax
 
     key = jax.random.key(0)
-    if case in ("plain", "unbounded", "plaincall"):
-        scene, spp = _plain_case(jf, case)
+    if case.startswith("scene:"):
+        scene = jf.load_scene(SCENE.parent / f"{case[len('scene:'):]}.json").scene
 
         def fn():
-            jf.render(scene, key, spp).block_until_ready()
+            jf.render(scene, key, 4).block_until_ready()
+
+        return fn, scene.camera.width * scene.camera.height * 4
+    if case in ("plain", "techniques", "unbounded", "plaincall"):
+        scene, spp = _plain_case(jf, case)
+        kw = TECHNIQUES if case == "techniques" else {}
+
+        def fn():
+            jf.render(scene, key, spp, **kw).block_until_ready()
 
         return fn, scene.camera.width * scene.camera.height * spp
     if case in ("jvp", "jvp256", "call"):
@@ -101,9 +113,10 @@ def _build_jitted(jf, case: str):
     import jax
 
     key = jax.random.key(0)
-    if case in ("plain", "unbounded", "plaincall"):
+    if case in ("plain", "techniques", "unbounded", "plaincall"):
         scene, spp = _plain_case(jf, case)
-        return jax.jit(lambda k: jf.render(scene, k, spp)), (key,), scene.camera.width * scene.camera.height * spp
+        kw = TECHNIQUES if case == "techniques" else {}
+        return jax.jit(lambda k: jf.render(scene, k, spp, **kw)), (key,), scene.camera.width * scene.camera.height * spp
     f, y0, n_paths = _fit_render(jf, case)
     return jax.jit(jax.jacfwd(f, has_aux=True)), (y0,), n_paths
 
