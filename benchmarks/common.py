@@ -95,8 +95,9 @@ def json_default(o):
 
 
 def write_json(path, obj) -> None:
-    """`obj` as indented JSON (numpy values converted), written atomically."""
+    """`obj` as indented JSON (numpy values converted), written atomically (its folder created if missing)."""
     text = json.dumps(obj, indent=1, default=json_default)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
 
     def write(tmp):
         with open(tmp, "w") as f:
@@ -106,7 +107,9 @@ def write_json(path, obj) -> None:
 
 
 def save_npz(path, compressed: bool = False, **arrays) -> None:
-    """`np.savez` (or `np.savez_compressed`) of `arrays` to `path` (ending in `.npz`), written atomically."""
+    """`np.savez` (or `np.savez_compressed`) of `arrays` to `path` (ending in `.npz`), written atomically (its folder
+    created if missing)."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     save = np.savez_compressed if compressed else np.savez
     atomic_write(path, lambda tmp: save(tmp, **arrays))
 
