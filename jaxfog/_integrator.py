@@ -380,8 +380,7 @@ def free_flight(tr: Tracer, state: PathState, hit: Hit, U) -> Segment:
         a, b = med.fog_interval(o, d, s)  # (0, s) for fog that fills space
         for j, light in enumerate(tr.scene.point_lights):
             t0, t1 = computed_once(tr, light.lit_interval(o, d))  # (a spot's cone: ~35 operations)
-            e = equiangular_setup(light.position, o, d, jnp.maximum(a, t0), jnp.minimum(b, t1),
-                                  once=lambda x: computed_once(tr, x))
+            e = equiangular_setup(light.position, o, d, jnp.maximum(a, t0), jnp.minimum(b, t1), once=barrier(tr))
             eqs.append(e)
             t_eq.append(equiangular_sample(e, U[ly.equiangular[j]], s))
         # every later value of the segment reads the samplers (the spot cone's interval, two arctangents)
@@ -509,7 +508,7 @@ def lobe_pdf(tr: Tracer, w, x):
     """Density of the light-angle lobe at `w` from `x`, averaged over the point-like lights (with `phase_lobe`, the
     mixture of the angle profile and the sampler's phase function about the direction to the light)."""
     def one(light):
-        p = light_lobe_pdf(w, x, light.position, once=lambda v: computed_once(tr, v))
+        p = light_lobe_pdf(w, x, light.position, once=barrier(tr))
         if tr.phase_lobe == 0:
             return p
         q = tr.sampler.phase.pdf_polar(one_minus_cos_between(w, safe_normalize(light.position - x)))
@@ -646,6 +645,11 @@ def computed_once(tr: Tracer, x):
         return x
     pred = tr.guard if tr.guard is not None else jnp.isfinite(tr.scene.camera.fov)
     return jax.lax.cond(pred, lambda v: v, lambda v: jax.tree.map(lambda a: a + jnp.zeros_like(a), v), x)
+
+
+def barrier(tr: Tracer) -> Callable:
+    """`x -> computed_once(tr, x)`: the `once` argument of the pure functions that take one."""
+    return lambda x: computed_once(tr, x)
 
 
 def bounce(tr: Tracer, state: PathState, b, U, last=None) -> PathState:

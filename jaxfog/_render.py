@@ -23,7 +23,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._integrator import (
     SamplingOptions,
-    computed_once,
+    barrier,
     make_tracer,
     n_dims,
     n_iterations,
@@ -119,7 +119,7 @@ def _trace_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: A
         rows, cols = jnp.divmod((row0 + jnp.arange(chunk, dtype=jnp.uint32)) % (H * W), W)
         pix = jnp.stack([cols, rows], axis=-1).astype(jnp.float32)
         # the hash's fusion barrier, guarded by the item's layer (traced data; its value decides nothing)
-        once = lambda x: computed_once(tracer._replace(guard=layer_id != 0), x)
+        once = barrier(tracer._replace(guard=layer_id != 0))
         if G == 1:
             pixels, U = draws(layer_id, row0, pix, once)
             radiance = jnp.where(ok[0], paths(pixels, U), 0.0)
@@ -294,7 +294,7 @@ def _replicated(tree, n_dev: int):
         if x.sharding == sharding:
             return x
         hit = _PLACED.get(id(x))
-        if hit is not None and hit[0]() is x:
+        if hit is not None and hit[0]() is x and hit[1].sharding == sharding:  # (another device count: placed anew)
             return hit[1]
         y = jax.device_put(x, sharding)
         if x.size <= PLACED_MAX_ELEMENTS:
