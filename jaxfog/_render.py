@@ -282,8 +282,9 @@ def _replicated(tree, n_dev: int):
     the scene in), each array copied there once and the copy reused while the array lives: a scene rendered again
     and again (the fit; a small image per call) is then not copied to every device on every call, which was most
     of the fixed cost of a call (`docs/results/bench/PROFILE.md`). Arrays of more than `PLACED_MAX_ELEMENTS`
-    elements are copied each call (no copy is kept); traced values (under `jax.jit`, `jax.jacfwd`) are left as
-    they are. Speed only: the values are the same."""
+    elements are copied each call (no copy is kept); traced values (under `jax.jit`, `jax.jacfwd`), and every array
+    when `render` itself is traced by a caller's `jax.jit`, are left as they are. Speed only: the values are the
+    same."""
     if n_dev == 1:
         return tree
     sharding = _replicated_sharding(n_dev)
@@ -297,6 +298,8 @@ def _replicated(tree, n_dev: int):
         if hit is not None and hit[0]() is x and hit[1].sharding == sharding:  # (another device count: placed anew)
             return hit[1]
         y = jax.device_put(x, sharding)
+        if isinstance(y, jax.core.Tracer):  # inside a caller's `jax.jit`: the program places it; nothing is kept
+            return x
         if x.size <= PLACED_MAX_ELEMENTS:
             i = id(x)  # the entry goes when the array does, before its id can be reused
             _PLACED[i] = (weakref.ref(x, lambda _, i=i: _PLACED.pop(i, None)), y)

@@ -126,6 +126,14 @@ big = jnp.ones(R.PLACED_MAX_ELEMENTS + 1)
 R._replicated(big, 2)
 out["big_cached"] = id(big) in R._PLACED
 out["tracer_kept"] = bool(jax.jit(lambda x: jnp.asarray(R._replicated(x, 2) is x))(jnp.ones(3)))
+# render traced by a caller's jit (the scene a constant of that program): nothing traced is kept for later calls
+fresh = jaxfog.load_scene("data_synthetic/scenes/spot_fog.json", ["camera.width=8", "camera.height=8"]).scene
+n_before = len(R._PLACED)
+img_jit = np.asarray(jax.jit(lambda k: jaxfog.render(fresh, k, 4))(key))
+out["kept_under_jit"] = len(R._PLACED) - n_before
+img_after = np.asarray(jaxfog.render(fresh, key, 4))
+out["img_jit"], out["img_after_jit"] = img_jit.tolist(), img_after.tolist()
+del fresh
 del sc, sc1, key
 gc.collect()
 out["cached_after_del"] = len(R._PLACED)
@@ -138,13 +146,18 @@ print(json.dumps(out))
 def test_the_scene_is_copied_to_the_devices_once_and_released_with_it():
     """`render` copies the scene's arrays to every device once and reuses the copies while the arrays live (the fixed
     cost of a call): the copies hold the same values, on both devices; the cache lets go of them with the scene,
-    keeps no copy of a large array, leaves traced values alone, and the image is the same on the second call and for
-    a scene committed to one device."""
+    keeps no copy of a large array, leaves traced values alone (and keeps nothing when a caller's `jax.jit` traces
+    `render`, after which a plain call still works), and the image is the same on the second call and for a scene
+    committed to one device."""
     p = subprocess.Popen([sys.executable, "-c", PLACEMENT_SCRIPT], cwd=REPO, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
     r = _result(p)
     assert r["n_leaves"] > 10 and r["reused"] and r["same_values"] and r["on_both"], r
     assert r["cached"] >= r["n_leaves"] - 1, r  # every leaf (equal leaves may be one array)
     assert not r["big_cached"] and r["tracer_kept"], r
+    assert r["kept_under_jit"] == 0, r
+    # two differently compiled programs (the scene a constant of the caller's), the same paths
+    assert_same_render_up_to_rounding(np.asarray(r["img_jit"]), np.asarray(r["img_after_jit"]), spp=4,
+                                      label="render under a caller's jit, then a plain call")
     assert r["cached_after_del"] == 0, r
     assert r["images_equal"] and r["image_mean"] > 0, r
