@@ -14,7 +14,8 @@ Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line 
 - `jvp256`: the same at 256 spp (the fit's default spp: one call per view and Levenberg-Marquardt step).
 - `call`: the same at 2 spp (128 paths): the fixed cost of one `render` call under `jax.jacfwd` (its figures are
   per path too: multiply by 128 for the time per call).
-- `plaincall`: `render(spot_fog at 8 x 8 px, key, 1)` (64 paths): the fixed cost of a plain call (multiply by 64).
+- `plaincall`: `render(spot_fog at 8 x 8 px, key, 1)` (64 paths), a new key each call (`fold_in`, as the fit draws
+  them): the fixed cost of a plain call (multiply by 64).
 - `scene:NAME`: `render(NAME, key, 4)`, a shipped scene (`data_synthetic/scenes/NAME.json`) at its own size.
 
 Each case is compiled once (the first call, reported apart), then timed `--reps` times, in us per path (one path =
@@ -59,7 +60,15 @@ def _build(jf, case: str):
             jf.render(scene, key, 4).block_until_ready()
 
         return fn, scene.camera.width * scene.camera.height * 4
-    if case in ("plain", "techniques", "unbounded", "plaincall"):
+    if case == "plaincall":  # a new key for every call, as the fit draws them (`jax.random.fold_in`)
+        scene, spp = _plain_case(jf, case)
+        calls = iter(range(1 << 30))
+
+        def fn():
+            jf.render(scene, jax.random.fold_in(key, next(calls)), spp).block_until_ready()
+
+        return fn, scene.camera.width * scene.camera.height * spp
+    if case in ("plain", "techniques", "unbounded"):
         scene, spp = _plain_case(jf, case)
         kw = TECHNIQUES if case == "techniques" else {}
 

@@ -253,7 +253,7 @@ def render(
     H, W = scene.camera.height, scene.camera.width
     chunks = jnp.asarray(item % n_ch, jnp.uint32)
     total = None
-    scene, key, proposal = _replicated((scene, key, proposal), n_dev)
+    scene, proposal = _replicated((scene, proposal), n_dev)  # (a key is new each call, as a rule: left to jit)
     for start in range(0, spp, per):
         first = start + (item // n_ch) * group  # each item's first layer; padding items start past the batch
         valid = (first[:, None] + np.arange(group)[None, :]) < min(start + per, spp)
