@@ -21,6 +21,16 @@ def dot(a: Float[Array, "3"], b: Float[Array, "3"]) -> Float[Array, ""]:
     return jnp.sum(a * b, axis=-1)
 
 
+def dot_unrolled(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """`dot` written as three products and two sums (no reduction). The same value up to float32 rounding; for XLA's
+    CPU backend it is elementwise, so it fuses into the vectorized kernel that reads it, where a reduction over 3
+    components whose result several values read becomes its own kernel of scalar code. Used by the ray-shape tests
+    (3 rays a bounce; `docs/results/bench/PROFILE.md`, session 8: spot_fog's sample 0.93-0.94x its time, area_light
+    0.56x, valley 0.60x, mirror_glass 1.09x). Not everywhere: as `dot` itself it made the whole sample 1.10x slower
+    (the reductions also keep XLA from copying cheap producers into every consumer)."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
 def cross(a: Float[Array, "3"], b: Float[Array, "3"]) -> Float[Array, "3"]:
     """Cross product of two 3-vectors."""
     return jnp.cross(a, b)

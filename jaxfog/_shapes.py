@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._bsdf import AbstractBSDF
-from ._math import cross, dot, safe_normalize, safe_sqrt
+from ._math import cross, dot_unrolled as dot, safe_normalize, safe_sqrt
 
 T_MIN = 1e-4
 """Smallest accepted hit distance (scene units): avoids re-hitting the surface a ray starts on."""

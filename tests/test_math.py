@@ -79,6 +79,15 @@ def test_safe_normalize_zero_vector():
     np.testing.assert_allclose(gr[1], [0.5, 0.0, 0.0], atol=1e-7)  # d(x/|v|)/dx at (0,0,2) = 1/2
 
 
+def test_dot_unrolled_is_dot():
+    rng = np.random.default_rng(3)
+    a, b = (jnp.asarray(rng.normal(size=(5, 3)), f32) for _ in range(2))
+    np.testing.assert_allclose(m.dot_unrolled(a, b), m.dot(a, b), rtol=1e-6, atol=1e-7)
+    ga = jax.grad(lambda x: jnp.sum(m.dot_unrolled(x, b)))(a)
+    np.testing.assert_allclose(ga, b, rtol=1e-7)
+    assert float(m.dot_unrolled(jnp.ones(3), jnp.asarray([1.0, 2.0, 3.0]))) == 6.0
+
+
 # ----------------------------------------------------------------------------------------------------- safe_div
 @pytest.mark.parametrize("a, b, value, da, db", [
     (3.0, 2.0, 1.5, 0.5, -0.75),
