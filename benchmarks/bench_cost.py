@@ -2,6 +2,7 @@
 
     python -m benchmarks.bench_cost [--scene spot_fog] [--blocks 4] [--reps 3] [--spp 16] [--mitsuba-spp 64]
                                     [--mitsuba-variant llvm_ad_rgb] [--out DIR]
+    python -m benchmarks.bench_cost --pool RUN1/cost.json RUN2/cost.json ...   # the block pairs of several runs
 
 Both renderers on every core (jaxfog: `jaxfog.use_cpu_cores()`; Mitsuba: Dr.Jit's thread pool), the scene at its
 own size and `max_depth`, no Russian roulette on either side (`jaxfog.to_mitsuba`). The run alternates blocks, so a
@@ -91,6 +92,23 @@ def table_rows(per: dict, block_medians: dict, mitsuba: list, mitsuba_blocks: li
     return rows
 
 
+def pooled_ratios(results: list[dict]) -> dict:
+    """Every block pair of several runs (their `cost.json` contents) pooled: per jaxfog configuration, the ratios of
+    its block medians to the Mitsuba block beside them, with their count, median, geometric mean and quartiles."""
+    ratios = {}
+    for res in results:
+        mb = [m["median_ms_per_spp"] for m in res.get("mitsuba_blocks", [])]
+        for name, meds in res["block_medians"].items():
+            if name in CONFIGS and mb:
+                ratios.setdefault(name, []).extend(a / m for a, m in zip(meds, mb))
+    out = {}
+    for name, v in ratios.items():
+        q = statistics.quantiles(v, n=4) if len(v) >= 2 else [v[0]] * 3
+        out[name] = {"n": len(v), "median": statistics.median(v), "geometric_mean": statistics.geometric_mean(v),
+                     "q25": q[0], "q75": q[2], "min": min(v), "max": max(v)}
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_cost", description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", default="spot_fog", help="a shipped scene's name or a .json path (default spot_fog)")
@@ -101,7 +119,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mitsuba-variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
     p.add_argument("--no-mitsuba", action="store_true", help="jaxfog rows only")
     p.add_argument("--out", default=str(OUT), help="output folder (default docs/results/bench/cost)")
+    p.add_argument("--pool", nargs="+", metavar="COST_JSON",
+                   help="no run: pool the block pairs of these earlier runs' cost.json files and print the ratios")
     args = p.parse_args(argv)
+    if args.pool:
+        import json
+
+        results = [json.loads(Path(f).read_text()) for f in args.pool]
+        print(f"{len(results)} runs pooled; ratio of each jaxfog block's median to the Mitsuba block beside it")
+        print(f"{'row':32s} {'pairs':>5s} {'median':>7s} {'geo mean':>8s} {'q25':>6s} {'q75':>6s} {'min':>6s} {'max':>6s}")
+        for name, r in pooled_ratios(results).items():
+            print(f"{name:32s} {r['n']:5d} {r['median']:7.3f} {r['geometric_mean']:8.3f} {r['q25']:6.3f}"
+                  f" {r['q75']:6.3f} {r['min']:6.3f} {r['max']:6.3f}")
+        return 0
     for name in ("blocks", "reps", "spp", "mitsuba_spp"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1")

@@ -356,6 +356,22 @@ def test_cost_table_pairs_each_jaxfog_block_with_the_mitsuba_block_beside_it():
     assert all("ratio_to_mitsuba" not in r for r in alone) and len(alone) == 3
 
 
+def test_cost_pooling_takes_every_block_pair_of_every_run():
+    from benchmarks import bench_cost
+
+    def run(meds, techs, mits):
+        return {"block_medians": {"jaxfog default": meds, "jaxfog, Mitsuba's techniques": techs,
+                                  "jaxfog per call": [1.0] * len(meds)},
+                "mitsuba_blocks": [{"median_ms_per_spp": m} for m in mits]}
+
+    pooled = bench_cost.pooled_ratios([run([10.0, 22.0], [8.0, 16.0], [10.0, 20.0]), run([9.0], [9.0], [10.0])])
+    d = pooled["jaxfog default"]
+    assert d["n"] == 3 and d["median"] == pytest.approx(1.0) and d["min"] == pytest.approx(0.9)
+    assert d["max"] == pytest.approx(1.1) and d["geometric_mean"] == pytest.approx((0.9 * 1.0 * 1.1) ** (1 / 3))
+    assert pooled["jaxfog, Mitsuba's techniques"]["median"] == pytest.approx(0.8)
+    assert "jaxfog per call" not in pooled
+
+
 @pytest.mark.slow
 def test_cost_run_without_mitsuba_end_to_end(tmp_path):
     out = tmp_path / "cost"
