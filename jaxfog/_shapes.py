@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._bsdf import AbstractBSDF
-from ._math import cross, dot_unrolled as dot, safe_normalize, safe_sqrt
+from ._math import cross, dot_unrolled, safe_normalize, safe_sqrt
 
 T_MIN = 1e-4
 """Smallest accepted hit distance (scene units): avoids re-hitting the surface a ray starts on."""
@@ -54,9 +54,9 @@ def intersect_spheres(o, d, center, radius):
     Uses the numerically careful form (Ray Tracing Gems ch. 7): the discriminant from the ray's closest approach.
     """
     oc = o[None, :] - center
-    b = dot(oc, d[None, :])
+    b = dot_unrolled(oc, d[None, :])
     perp = oc - b[:, None] * d[None, :]
-    disc = radius * radius - dot(perp, perp)
+    disc = radius * radius - dot_unrolled(perp, perp)
     hit = disc >= 0
     root = safe_sqrt(disc)
     t0 = -b - root
@@ -67,11 +67,11 @@ def intersect_spheres(o, d, center, radius):
 
 def intersect_rectangles(o, d, center, edge_u, edge_v, normal):
     """Hit distances (> T_MIN, else inf) of the ray `o + t d` with rectangles given as stacked (N, 3) arrays."""
-    denom = dot(normal, d[None, :])
+    denom = dot_unrolled(normal, d[None, :])
     ok = jnp.abs(denom) > 1e-12
-    t = dot(center - o[None, :], normal) / jnp.where(ok, denom, 1.0)
+    t = dot_unrolled(center - o[None, :], normal) / jnp.where(ok, denom, 1.0)
     p = o[None, :] + t[:, None] * d[None, :] - center
-    a = dot(p, edge_u) / dot(edge_u, edge_u)
-    b = dot(p, edge_v) / dot(edge_v, edge_v)
+    a = dot_unrolled(p, edge_u) / dot_unrolled(edge_u, edge_u)
+    b = dot_unrolled(p, edge_v) / dot_unrolled(edge_v, edge_v)
     inside = ok & (t > T_MIN) & (jnp.abs(a) <= 0.5) & (jnp.abs(b) <= 0.5)
     return jnp.where(inside, t, jnp.inf)
