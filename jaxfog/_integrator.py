@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ._bsdf import AbstractLobeBSDF
-from ._math import dot, one_minus_cos_between, safe_div, safe_normalize
+from ._math import RGB, dot, one_minus_cos_between, safe_div, safe_normalize, where_rgb
 from ._medium import AbstractMedium
 from ._sampling import (
     Polar,
@@ -262,8 +262,8 @@ class Segment(NamedTuple):
     t: Float[Array, ""]
     p: Float[Array, "3"]
     pdf: Float[Array, ""]
-    w_med: Float[Array, "3"]
-    w_surf: Float[Array, "3"]
+    w_med: RGB
+    w_surf: RGB
 
 
 class Direction(NamedTuple):
@@ -283,11 +283,16 @@ class Next(NamedTuple):
 
     o: Float[Array, "3"]
     d: Float[Array, "3"]
-    beta: Float[Array, "3"]
+    beta: RGB
     specular: Bool[Array, ""]
     pdf: Float[Array, ""]
     alive: Bool[Array, ""]
     in_medium: Bool[Array, ""]
+
+
+def rgb_safe_div(x, b) -> RGB:
+    """`safe_div(x, b)` per channel of `x` (an RGB value) by the scalar `b`."""
+    return RGB(*(safe_div(c, b) for c in RGB.of(x)))
 
 
 # -------------------------------------------------------------------------------------------------- geometry
@@ -389,7 +394,8 @@ def free_flight(tr: Tracer, state: PathState, hit: Hit, U) -> Segment:
     # chain), where it lets the camera see surfaces behind thick fog; on the other segments it would multiply a long
     # path's weight by albedo m / q > 1 at every vertex near a surface and make the weights heavy-tailed
     cap = hit.found & state.specular
-    fl = tr.sampler.sample_free_flight(o, d, s, cap, state.in_medium, U[ly.free_flight], U[ly.channel])
+    fl = computed_once(tr, tr.sampler.sample_free_flight(o, d, s, cap, state.in_medium, U[ly.free_flight],
+                                                         U[ly.channel]))  # every channel's weight reads it
     t = fl.t
     if tr.mix > 0:
         # the vertex distance is drawn from a mixture: free flight, or equiangular toward a light (the path then
@@ -399,22 +405,22 @@ def free_flight(tr: Tracer, state: PathState, hit: Hit, U) -> Segment:
     t = jnp.where(fl.scattered, t, 0.0)
     p = o + t * d
     p_eq = tuple(equiangular_pdf(e, t) for e in eqs)
-    pdf = vertex_pdf(tr, o, d, s, fl.q, eqs, t, p_eq)
+    pdf = computed_once(tr, vertex_pdf(tr, o, d, s, fl.q, eqs, t, p_eq))  # every channel's weight reads it
     if tr.mix > 0:
-        w_med = med.scattering(p) * safe_div(med.transmittance(o, d, t), pdf)
+        w_med = RGB.of(med.scattering(p)) * rgb_safe_div(med.transmittance(o, d, t), pdf)
     else:
-        w_med = med.collision_weight(tr.sampler, o, d, s, jnp.where(fl.scattered, fl.q, 1.0), t)
+        w_med = RGB.of(med.collision_weight(tr.sampler, o, d, s, jnp.where(fl.scattered, fl.q, 1.0), t))
     # double where: on a segment that escapes (no surface) the surface branch is never used, and its weight at
     # s = extent overflows for a proposal that samples more densely than the medium (0 * inf)
     on_surf = state.in_medium & hit.found
-    w_surf = jnp.where(on_surf, med.surface_weight(o, d, jnp.where(on_surf, s, 0.0),
+    w_surf = where_rgb(on_surf, med.surface_weight(o, d, jnp.where(on_surf, s, 0.0),
                                                    jnp.where(on_surf, fl.log_one_minus_q, 0.0)), 1.0)
     return Segment(s, tuple(eqs), tuple(t_eq), p_eq, fl.q, fl.scattered, t, p, pdf, w_med, w_surf)
 
 
 def no_flight(hit: Hit) -> Segment:
     """The segment of a scene without fog: always the surface branch, weight 1."""
-    z, one = jnp.float32(0.0), jnp.ones(3, jnp.float32)
+    z, one = jnp.float32(0.0), RGB.of(jnp.float32(1.0))
     return Segment(hit.t, (), (), (), z, jnp.bool_(False), z, hit.p, z, one, one)
 
 
@@ -423,19 +429,22 @@ def direct_on_segment(tr: Tracer, state: PathState, seg: Segment, ok) -> Float[A
     """Light scattered toward the camera along the segment from each point-like light, at its equiangular sample;
     MIS (balance heuristic) with the path's own medium vertex."""
     med, pk, o, d = tr.medium, tr.pk, state.o, state.d
-    L = jnp.zeros(3, jnp.float32)
+    L = RGB.of(jnp.float32(0.0))
     for j, (light, e, te) in enumerate(zip(tr.scene.point_lights, seg.eq, seg.t_eq)):
         p_eq = equiangular_pdf(e, te)
         p_eqs = tuple(p_eq if k == j else equiangular_pdf(ek, te) for k, ek in enumerate(seg.eq))
         xe = o + te * d
-        ls = light.sample_li(xe)
-        vis = ~occluded(pk, xe, ls.wi, ls.dist)
-        f = med.scattering(xe) * med.transmittance(o, d, te) * med.phase.eval(d, ls.wi)
-        use = ok & state.in_medium & e.valid & vis & (p_eq > 0)
+        wi, dist, rgb, k = light.sample_scale(xe)  # the light's value is rgb * k
+        live = ok & state.in_medium & e.valid & (p_eq > 0)
         # double where: an unused sample's MIS denominator can be ~1e-30 (dense fog), whose 1/x^2 overflows
-        p_all = jnp.where(use, p_eq + vertex_pdf(tr, o, d, seg.s, seg.q, seg.eq, te, p_eqs), 1.0)
-        c = state.beta * f * ls.value * med.transmittance(xe, ls.wi, ls.dist) * safe_div(1.0, p_all)
-        L = L + jnp.where(use, c, 0.0)
+        p_all = jnp.where(live, p_eq + vertex_pdf(tr, o, d, seg.s, seg.q, seg.eq, te, p_eqs), 1.0)
+        use = live & ~occluded(pk, xe, wi, dist)
+        # what every channel reads (the shadow ray, the light's profile, the phase function, the MIS weight),
+        # computed once
+        k, wi, dist, use = computed_once(tr, (k * med.phase.eval(d, wi) * safe_div(1.0, p_all), wi, dist, use))
+        f = RGB.of(med.scattering(xe)) * med.transmittance(o, d, te)
+        c = state.beta * f * rgb * med.transmittance(xe, wi, dist) * k
+        L = L + where_rgb(use, c, 0.0)
     return L
 
 
@@ -446,24 +455,32 @@ def nee(tr: Tracer, U, p, shadow_o, response: Callable, dir_pdf: Callable, beta,
     direction sampling picks `wi` (MIS with area lights); `seg`: for a medium vertex with equiangular segments, the
     balance-heuristic weight against the equiangular technique toward each point-like light."""
     scene, ly = tr.scene, tr.layout
-    L = jnp.zeros(3, jnp.float32)
+    L = RGB.of(jnp.float32(0.0))
     point_index = {id(lt): j for j, lt in enumerate(scene.point_lights)}
     order = [i for i, lt in enumerate(scene.lights) if lt.is_delta] + [i for i, lt in enumerate(scene.lights)
                                                                        if not lt.is_delta]
     for i in order:
         light = scene.lights[i]
-        ls = light.sample_li(p, U[ly.lights[i]:ly.lights[i] + light.n_dims])
-        vis = ~occluded(tr.pk, shadow_o, ls.wi, ls.dist)
-        tr_l = tr.medium.transmittance(p, ls.wi, ls.dist) if tr.medium is not None else 1.0
-        c = beta * response(ls.wi) * ls.value * tr_l
+        if id(light) in point_index:  # the value as rgb * scale (a spot's profile: a scalar)
+            wi, dist, rgb, scale = light.sample_scale(p)
+            pdf = jnp.float32(1.0)
+        else:
+            ls = light.sample_li(p, U[ly.lights[i]:ly.lights[i] + light.n_dims])
+            wi, dist, rgb, scale, pdf = ls.wi, ls.dist, ls.value, jnp.float32(1.0), ls.pdf
+        vis = ~occluded(tr.pk, shadow_o, wi, dist)
         if light.is_delta:
+            use = ok & vis
             if seg is not None and id(light) in point_index:
                 p_eq = seg.p_eq[point_index[id(light)]]
-                c = c * jnp.where(seg.scattered, safe_div(seg.pdf, seg.pdf + p_eq), 1.0)
-            L = L + jnp.where(ok & vis, c, 0.0)
+                scale = scale * jnp.where(seg.scattered, safe_div(seg.pdf, seg.pdf + p_eq), 1.0)
         else:
-            w = power_heuristic(ls.pdf, dir_pdf(ls.wi))
-            L = L + jnp.where(ok & vis & (ls.pdf > 0), c * safe_div(w, ls.pdf), 0.0)
+            scale = safe_div(power_heuristic(pdf, dir_pdf(wi)), pdf)
+            use = ok & vis & (pdf > 0)
+        # what every channel reads (the shadow ray, the response, the light's profile, the MIS weight), computed once
+        resp, wi, dist, scale, use = computed_once(tr, (response(wi), wi, dist, scale, use))
+        tr_l = tr.medium.transmittance(p, wi, dist) if tr.medium is not None else 1.0
+        c = beta * resp * rgb * tr_l * scale
+        L = L + where_rgb(use, c, 0.0)
     return L
 
 
@@ -531,12 +548,17 @@ def medium_vertex(tr: Tracer, state: PathState, seg: Segment, dr: Direction) -> 
     omc = dr.phase.one_minus_cos
     if tr.reparam:  # the direction carries the derivative; sampling is exact, so the weight p / p is 1
         pdf = sphase.pdf_polar(omc)
-        beta_next = beta if phase.sampled_exactly else beta * phase.eval_polar(omc) / pdf
+        if phase.sampled_exactly:
+            beta_next = beta
+        else:
+            value, pdf = computed_once(tr, (phase.eval_polar(omc), pdf))  # every channel reads them
+            beta_next = beta * value / pdf
     else:
         if tr.lobe > 0:
             omc = jnp.where(dr.take_lobe, one_minus_cos_between(state.d, dr.wo), omc)
         pdf = mix_lobe(tr, sphase.pdf_polar(omc), dr.lobe_pdf)
-        beta_next = beta * phase.eval_polar(omc) / pdf
+        value, pdf = computed_once(tr, (phase.eval_polar(omc), pdf))  # every channel reads them
+        beta_next = beta * value / pdf
     t, f = jnp.bool_(True), jnp.bool_(False)
     return Next(seg.p, dr.wo, beta_next, f, pdf, t, state.in_medium)
 
@@ -544,11 +566,12 @@ def medium_vertex(tr: Tracer, state: PathState, seg: Segment, dr: Direction) -> 
 def emission(tr: Tracer, state: PathState, hit: Hit, seg: Segment) -> Float[Array, "3"]:
     """Emission of an area light hit by the path on its surface branch (MIS with the light's sampling; weight 1
     after a specular direction), RGB."""
-    L = jnp.zeros(3, jnp.float32)
+    L = RGB.of(jnp.float32(0.0))
     surf = state.alive & ~seg.scattered & hit.found
     for light, shape in zip(tr.scene.area_lights, tr.pk.emitter_shape):
         w = jnp.where(state.specular, 1.0, power_heuristic(state.pdf_dir, light.pdf_li(state.o, state.d, hit.t)))
-        L = L + jnp.where(surf & (hit.idx == shape), state.beta * seg.w_surf * light.emitted(state.d) * w, 0.0)
+        w = computed_once(tr, w)  # every channel reads it
+        L = L + where_rgb(surf & (hit.idx == shape), state.beta * seg.w_surf * light.emitted(state.d) * w, 0.0)
     return L
 
 
@@ -570,13 +593,14 @@ def surface_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, dr: Dir
         if issubclass(t, AbstractLobeBSDF):  # one-sided: a path arriving at the back ends
             cos_o = dot(n, dr.wo)
             pdf_k = mix_lobe(tr, bsdf.pdf_cos(cos_o), dr.lobe_pdf)
-            beta_k = beta * safe_div(bsdf.eval_cos(-dot(d, n), cos_o), pdf_k)
-            wo, beta_next = jnp.where(is_k, dr.wo, wo), jnp.where(is_k, beta_k, beta_next)
+            value, pdf_k = computed_once(tr, (bsdf.eval_cos(-dot(d, n), cos_o), pdf_k))  # every channel reads them
+            beta_k = beta * rgb_safe_div(value, pdf_k)
+            wo, beta_next = jnp.where(is_k, dr.wo, wo), where_rgb(is_k, beta_k, beta_next)
             spec, pdf = jnp.where(is_k, False, spec), jnp.where(is_k, pdf_k, pdf)
             alive = alive & ~(is_k & ~front)
         else:
             bs = bsdf.sample(d, n, U[ly.polar:ly.choice + 1])
-            wo, beta_next = jnp.where(is_k, bs.wo, wo), jnp.where(is_k, beta * bs.weight, beta_next)
+            wo, beta_next = jnp.where(is_k, bs.wo, wo), where_rgb(is_k, beta * bs.weight, beta_next)
             in_med = jnp.where(is_k & bs.transmitted, ~front, in_med)
     side = jnp.where(dot(wo, n) >= 0, 1.0, -1.0)  # rays leave a surface from the side they go to
     return Next(hit.p + side * EPS_OFFSET * n, wo, beta_next, spec, pdf, alive, in_med)
@@ -588,7 +612,7 @@ def direct_at_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, ok, U
     pk, d, n = tr.pk, state.d, hit.n
     lobe_kinds = [k for k, t in enumerate(pk.bsdf_types) if issubclass(t, AbstractLobeBSDF)]
     if tr.medium is None and not lobe_kinds:
-        return jnp.zeros(3, jnp.float32)
+        return RGB.of(jnp.float32(0.0))
     med_v = seg.scattered
     kind = jnp.asarray(pk.bsdf_kind)[hit.idx] if pk.n_shapes else None
     on_lobe = sum((kind == k).astype(jnp.int32) for k in lobe_kinds) > 0 if lobe_kinds else jnp.bool_(False)
@@ -596,14 +620,14 @@ def direct_at_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, ok, U
     ok_v = ok & (med_v | surf_ok)
     p_v = jnp.where(med_v, seg.p, hit.p)
     shadow_o = jnp.where(med_v, p_v, hit.p + EPS_OFFSET * n)
-    beta_v = state.beta * jnp.where(med_v, seg.w_med, seg.w_surf)
+    beta_v = state.beta * where_rgb(med_v, seg.w_med, seg.w_surf)
     bsdfs = [(kind == k, jax.tree.map(lambda x: x[hit.idx], pk.bsdfs[k])) for k in lobe_kinds]
 
     def response(wi):
-        r = jnp.zeros(3, jnp.float32)
+        r = RGB.of(jnp.float32(0.0))
         for is_k, b in bsdfs:
-            r = jnp.where(is_k, b.eval(d, wi, n), r)
-        return jnp.where(med_v, tr.medium.phase.eval(d, wi), r) if tr.medium is not None else r
+            r = where_rgb(is_k, b.eval(d, wi, n), r)
+        return where_rgb(med_v, tr.medium.phase.eval(d, wi), r) if tr.medium is not None else r
 
     def dir_pdf(wi):
         pdf = jnp.float32(0.0)
@@ -622,9 +646,11 @@ def update(state: PathState, seg: Segment, L, med: Next | None, surf: Next) -> P
     if med is None:
         nxt, alive = surf, surf.alive
     else:
-        nxt = Next(*(jnp.where(seg.scattered, a, b) for a, b in zip(med, surf)))
+        nxt = Next(*(where_rgb(seg.scattered, a, b) if isinstance(a, RGB) else jnp.where(seg.scattered, a, b)
+                     for a, b in zip(med, surf)))
         alive = state.alive & (seg.scattered | surf.alive)
-    return PathState(nxt.o, nxt.d, jnp.where(alive, nxt.beta, 0.0), L, alive, nxt.specular, nxt.pdf, nxt.in_medium)
+    return PathState(nxt.o, nxt.d, where_rgb(alive, nxt.beta, 0.0).array(), L.array(), alive, nxt.specular, nxt.pdf,
+                     nxt.in_medium)
 
 
 def computed_once(tr: Tracer, x):
@@ -660,6 +686,7 @@ def bounce(tr: Tracer, state: PathState, b, U, last=None) -> PathState:
     scattering direction and the vertex's throughput) nothing reads: it is then skipped (`lax.cond`), and the
     state keeps its direction and throughput, with the new radiance. The radiance is the same either way."""
     nee_ok = state.alive if tr.scene.max_depth == -1 else state.alive & (b + 2 <= tr.scene.max_depth)
+    state_in, state = state, state._replace(beta=RGB.of(state.beta), L=RGB.of(state.L))  # channels inside a bounce
     hit = intersect(tr.pk, state.o, state.d)
     seg = computed_once(tr, free_flight(tr, state, hit, U) if tr.medium is not None else no_flight(hit))
     L = state.L
@@ -674,7 +701,7 @@ def bounce(tr: Tracer, state: PathState, b, U, last=None) -> PathState:
 
     if last is None:
         return continuation(L)
-    return jax.lax.cond(last, lambda L: state._replace(L=L), continuation, L)
+    return jax.lax.cond(last, lambda L: state_in._replace(L=L.array()), continuation, L)
 
 
 def start_path(o, d) -> PathState:

@@ -66,6 +66,21 @@ class AbstractPointLikeLight(AbstractLight):
     def intensity_toward(self, w: Float[Array, "3"]) -> Float[Array, "3"]:
         """RGB radiant intensity (W/sr) the light sends along the unit direction `w` (away from the light)."""
 
+    def intensity_parts(self, w: Float[Array, "3"]) -> tuple[Float[Array, "3"], Float[Array, ""]]:
+        """`(rgb, scale)` with `intensity_toward(w) = rgb * scale`: the light's colour (W/sr) and its angular profile
+        (a scalar), apart, so that the tracer computes the profile once for the three channels. By default the
+        whole intensity and 1; lights whose colour does not depend on `w` return their intensity and profile."""
+        return self.intensity_toward(w), jnp.float32(1.0)
+
+    def sample_scale(self, p: Float[Array, "3"]):
+        """`(wi, dist, rgb, scale)`: `sample_li(p)` with its value as `rgb * scale` (`intensity_parts` of the
+        direction toward `p`, the 1/dist^2 in `scale`)."""
+        v = self.position - p
+        dist2 = dot(v, v)
+        wi = safe_normalize(v)
+        rgb, profile = self.intensity_parts(-wi)
+        return wi, safe_sqrt(dist2), rgb, safe_div(profile, dist2)
+
     @abc.abstractmethod
     def lit_interval(self, o: Float[Array, "3"], d: Float[Array, "3"]) -> tuple[Float[Array, ""], Float[Array, ""]]:
         """`(t0, t1)`: the light shines on the line `o + t d` only for `t0 <= t <= t1` (possibly empty: t0 > t1;
@@ -93,6 +108,9 @@ class PointLight(AbstractPointLikeLight):
 
     def intensity_toward(self, w):
         return self.intensity
+
+    def intensity_parts(self, w):
+        return self.intensity, jnp.float32(1.0)
 
     def lit_interval(self, o, d):
         return jnp.float32(-jnp.inf), jnp.float32(jnp.inf)
@@ -137,6 +155,9 @@ class SpotLight(AbstractPointLikeLight):
 
     def intensity_toward(self, w):
         return self.intensity * spot_falloff(dot(w, self.direction), self.cutoff_angle, self.beam_width)
+
+    def intensity_parts(self, w):
+        return self.intensity, spot_falloff(dot(w, self.direction), self.cutoff_angle, self.beam_width)
 
     def lit_interval(self, o, d):
         return spot_cone_interval(self.position, self.direction, self.cutoff_angle, o, d)

@@ -7,6 +7,8 @@ value and gradient at its edge in `tests/test_math.py`.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -132,6 +134,71 @@ def one_minus_cos_between(a: Float[Array, "3"], b: Float[Array, "3"]) -> Float[A
     """`1 - cos(angle)` between unit vectors a and b, as `|a - b|^2 / 2` (no cancellation near cos = 1)."""
     d = a - b
     return 0.5 * jnp.sum(d * d, axis=-1)
+
+
+class RGB(NamedTuple):
+    """An RGB value as three separate channels (each of any shape; a path's channels are scalars).
+
+    The tracer carries its throughputs, weights and radiance as `RGB` inside a bounce, not as `(3,)` arrays: under
+    `vmap` a `(3,)` array becomes `(lanes, 3)`, whose XLA CPU kernels index the minor axis of 3 per element and are
+    often scalar code, while each channel of an `RGB` is a contiguous `(lanes,)` array in vectorized kernels
+    (`docs/results/bench/PROFILE.md`, session 9). Arithmetic is per channel; the other operand may be an `RGB`, a
+    `(..., 3)` array (taken channel by channel) or a scalar (every channel). The values are those of the array
+    arithmetic (the same float32 operations)."""
+
+    r: Array
+    g: Array
+    b: Array
+
+    @staticmethod
+    def of(x) -> "RGB":
+        """`x` as an `RGB`: an `RGB` as it is, a `(..., 3)` array by channel, a scalar on every channel."""
+        if isinstance(x, RGB):
+            return x
+        x = jnp.asarray(x)
+        if x.ndim == 0:
+            return RGB(x, x, x)
+        return RGB(x[..., 0], x[..., 1], x[..., 2])
+
+    def array(self) -> Float[Array, "... 3"]:
+        """The `(..., 3)` array (built elementwise: a sum of scaled unit vectors, see `_vec3`)."""
+        return _vec3(self.r, self.g, self.b)
+
+    def _zip(self, other, f) -> "RGB":
+        o = _channels(other)
+        return RGB(f(self.r, o[0]), f(self.g, o[1]), f(self.b, o[2]))
+
+    def __add__(self, other):
+        return self._zip(other, lambda a, b: a + b)
+
+    __radd__ = __add__
+
+    def __mul__(self, other):
+        return self._zip(other, lambda a, b: a * b)
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, other):
+        return self._zip(other, lambda a, b: a / b)
+
+    def __sub__(self, other):
+        return self._zip(other, lambda a, b: a - b)
+
+
+def _channels(x):
+    """The three channels of an `RGB`, a `(..., 3)` array, or a scalar (the same value thrice)."""
+    if isinstance(x, RGB):
+        return x
+    x = jnp.asarray(x)
+    if x.ndim == 0:
+        return (x, x, x)
+    return (x[..., 0], x[..., 1], x[..., 2])
+
+
+def where_rgb(mask, a, b) -> RGB:
+    """`jnp.where(mask, a, b)` per channel (`a`, `b`: `RGB`, `(..., 3)` arrays or scalars; `mask` per path)."""
+    ca, cb = _channels(a), _channels(b)
+    return RGB(*(jnp.where(mask, x, y) for x, y in zip(ca, cb)))
 
 
 def luminance(rgb: Float[Array, "... 3"]) -> Float[Array, "..."]:
