@@ -161,7 +161,8 @@ class RGB(NamedTuple):
         return RGB(x[..., 0], x[..., 1], x[..., 2])
 
     def array(self) -> Float[Array, "... 3"]:
-        """The `(..., 3)` array (built elementwise: a sum of scaled unit vectors, see `_vec3`)."""
+        """The `(..., 3)` array (built elementwise: a sum of scaled unit vectors, see `_vec3`; so a non-finite
+        channel makes every channel NaN, and a render with it fails its finiteness check all the same)."""
         return _vec3(self.r, self.g, self.b)
 
     def _zip(self, other, f) -> "RGB":

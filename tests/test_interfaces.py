@@ -195,6 +195,38 @@ def test_point_and_spot_light_samples():
         np.testing.assert_allclose(np.asarray(ls.value), 10.0 * falloff / r2, rtol=2e-5, atol=1e-7)
 
 
+def test_point_like_lights_split_their_value_into_colour_and_profile():
+    """`sample_scale` (what the tracer reads) is `sample_li` with its value as rgb * scale; `intensity_parts`
+    multiplies back to `intensity_toward`; a point-like light that defines only `intensity_toward` gets the default
+    split (the whole intensity, scale 1)."""
+    spot = jf.SpotLight((0.0, 2.0, 0.0), (0.0, -1.0, 0.0), (10.0, 5.0, 2.0), cutoff_angle=30.0, beam_width=10.0)
+    point = jf.PointLight((0.5, 2.0, -0.3), (4.0, 3.0, 2.0))
+
+    class Ring(jf.AbstractPointLikeLight):  # a colour that depends on the direction: no colour / profile split
+        position: jax.Array
+
+        def intensity_toward(self, w):
+            return jnp.stack([1.0 + w[0] ** 2, 2.0 + w[1], 3.0 - w[2]])
+
+        def lit_interval(self, o, d):
+            return jnp.float32(-jnp.inf), jnp.float32(jnp.inf)
+
+    ring = Ring(jnp.array([0.2, 1.5, 0.1], jnp.float32))
+    for light in (spot, point, ring):
+        for theta in (0.0, 5.0, 20.0, 29.0, 31.0, 120.0):
+            x = jnp.array([2.0 * np.sin(np.deg2rad(theta)), 2.0 - 2.0 * np.cos(np.deg2rad(theta)), 0.3],
+                          jnp.float32)
+            ls = light.sample_li(x)
+            wi, dist, rgb, scale = light.sample_scale(x)
+            np.testing.assert_allclose(np.asarray(wi), np.asarray(ls.wi), rtol=0, atol=0)
+            assert float(dist) == float(ls.dist)
+            np.testing.assert_allclose(np.asarray(rgb * scale), np.asarray(ls.value), rtol=1e-6, atol=1e-9)
+            colour, profile = light.intensity_parts(-wi)
+            np.testing.assert_allclose(np.asarray(colour * profile), np.asarray(light.intensity_toward(-wi)),
+                                       rtol=1e-7)
+    assert float(ring.intensity_parts(jnp.array([0.0, 0.0, 1.0]))[1]) == 1.0
+
+
 def _rectangle_solid_angle(p, center, eu, ev):
     """Solid angle of a rectangle seen from p (Van Oosterom & Strackee, two triangles), float64."""
     c, eu, ev = (np.asarray(x, np.float64) for x in (center, eu, ev))

@@ -279,3 +279,32 @@ def test_atan2_gradient_finite_at_origin_and_exact_elsewhere():
         np.testing.assert_allclose(dx, [-y / (x * x + y * y)] * 2, rtol=1e-5)
     for v in grad_both(lambda v: m.atan2(v, f32(0.0)), 0.0) + grad_both(lambda v: m.atan2(f32(0.0), v), 0.0):
         assert np.isfinite(v)
+
+
+def test_rgb_channels_do_the_array_arithmetic():
+    """`RGB` (the tracer's channels) gives the values and gradients of the same arithmetic on (3,) arrays, with
+    scalars, arrays and other RGBs as operands, under `vmap` (channels of shape (lanes,))."""
+    rng = np.random.default_rng(3)
+    a, b, c = (jnp.asarray(rng.uniform(0.1, 2.0, (7, 3)), jnp.float32) for _ in range(3))
+    s = jnp.asarray(rng.uniform(0.1, 2.0, 7), jnp.float32)
+    mask = jnp.asarray(rng.uniform(size=7) < 0.5)
+
+    def with_arrays(a, b, c, s, m):
+        x = (a * b + c) / s - 0.5 * a
+        return jnp.where(m, x * s, 0.0) + 1.0
+
+    def with_rgb(a, b, c, s, m):
+        x = (m_.RGB.of(a) * b + m_.RGB.of(c)) / s - m_.RGB.of(a) * 0.5
+        return (m_.where_rgb(m, x * s, 0.0) + 1.0).array()
+
+    m_ = m
+    want = jax.vmap(with_arrays)(a, b, c, s, mask)
+    got = jax.vmap(with_rgb)(a, b, c, s, mask)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6)
+    g_want = jax.grad(lambda a: jnp.sum(jax.vmap(with_arrays)(a, b, c, s, mask) ** 2))(a)
+    g_got = jax.grad(lambda a: jnp.sum(jax.vmap(with_rgb)(a, b, c, s, mask) ** 2))(a)
+    np.testing.assert_allclose(np.asarray(g_got), np.asarray(g_want), rtol=1e-5)
+    # of: a scalar on every channel; an RGB as it is; array() builds the (3,) array back
+    x = m.RGB.of(jnp.float32(2.5))
+    assert np.asarray(x.array()).tolist() == [2.5, 2.5, 2.5] and m.RGB.of(x) is x
+    np.testing.assert_array_equal(np.asarray(m.RGB.of(a[0]).array()), np.asarray(a[0]))
