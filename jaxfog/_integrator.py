@@ -425,7 +425,7 @@ def no_flight(hit: Hit) -> Segment:
 
 
 # ----------------------------------------------------------------------------------------------- direct light
-def direct_on_segment(tr: Tracer, state: PathState, seg: Segment, ok) -> Float[Array, "3"]:
+def direct_on_segment(tr: Tracer, state: PathState, seg: Segment, ok) -> RGB:
     """Light scattered toward the camera along the segment from each point-like light, at its equiangular sample;
     MIS (balance heuristic) with the path's own medium vertex."""
     med, pk, o, d = tr.medium, tr.pk, state.o, state.d
@@ -448,7 +448,7 @@ def direct_on_segment(tr: Tracer, state: PathState, seg: Segment, ok) -> Float[A
     return L
 
 
-def nee(tr: Tracer, U, p, shadow_o, response: Callable, dir_pdf: Callable, beta, ok, seg: Segment | None):
+def nee(tr: Tracer, U, p, shadow_o, response: Callable, dir_pdf: Callable, beta: RGB, ok, seg: Segment | None) -> RGB:
     """Next-event estimation from the vertex `p` (one shadow ray per light, from `shadow_o`).
 
     `response(wi) -> RGB`: phase value or BSDF x cosine; `dir_pdf(wi)`: the density with which the vertex's own
@@ -563,7 +563,7 @@ def medium_vertex(tr: Tracer, state: PathState, seg: Segment, dr: Direction) -> 
     return Next(seg.p, dr.wo, beta_next, f, pdf, t, state.in_medium)
 
 
-def emission(tr: Tracer, state: PathState, hit: Hit, seg: Segment) -> Float[Array, "3"]:
+def emission(tr: Tracer, state: PathState, hit: Hit, seg: Segment) -> RGB:
     """Emission of an area light hit by the path on its surface branch (MIS with the light's sampling; weight 1
     after a specular direction), RGB."""
     L = RGB.of(jnp.float32(0.0))
@@ -606,7 +606,7 @@ def surface_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, dr: Dir
     return Next(hit.p + side * EPS_OFFSET * n, wo, beta_next, spec, pdf, alive, in_med)
 
 
-def direct_at_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, ok, U):
+def direct_at_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, ok, U) -> RGB:
     """NEE from the bounce's vertex: the medium vertex (phase function) or the surface vertex (a lobe BSDF on its
     front face); delta BSDFs see no light sample."""
     pk, d, n = tr.pk, state.d, hit.n
@@ -641,7 +641,7 @@ def direct_at_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, ok, U
 
 
 # ------------------------------------------------------------------------------------------------- the tracer
-def update(state: PathState, seg: Segment, L, med: Next | None, surf: Next) -> PathState:
+def update(state: PathState, seg: Segment, L: RGB, med: Next | None, surf: Next) -> PathState:
     """The next path state: the medium vertex's continuation where the path scattered, else the surface's."""
     if med is None:
         nxt, alive = surf, surf.alive

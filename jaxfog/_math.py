@@ -182,8 +182,19 @@ class RGB(NamedTuple):
     def __truediv__(self, other):
         return self._zip(other, lambda a, b: a / b)
 
+    def __rtruediv__(self, other):
+        return self._zip(other, lambda a, b: b / a)
+
     def __sub__(self, other):
         return self._zip(other, lambda a, b: a - b)
+
+    def __rsub__(self, other):
+        return self._zip(other, lambda a, b: b - a)
+
+    def __neg__(self):
+        return RGB(-self.r, -self.g, -self.b)
+
+    __array_ufunc__ = None  # numpy operands defer to the methods above (not broadcast against a 3-tuple)
 
 
 def _channels(x):

@@ -304,6 +304,12 @@ def test_rgb_channels_do_the_array_arithmetic():
     g_want = jax.grad(lambda a: jnp.sum(jax.vmap(with_arrays)(a, b, c, s, mask) ** 2))(a)
     g_got = jax.grad(lambda a: jnp.sum(jax.vmap(with_rgb)(a, b, c, s, mask) ** 2))(a)
     np.testing.assert_allclose(np.asarray(g_got), np.asarray(g_want), rtol=1e-5)
+    # reflected operators, numpy and JAX scalars on the left, negation
+    x = m.RGB.of(jnp.asarray([1.0, 2.0, 4.0], jnp.float32))
+    for got, want in (((2.0 - x).array(), [1.0, 0.0, -2.0]), ((4.0 / x).array(), [4.0, 2.0, 1.0]),
+                      ((np.float32(3.0) * x).array(), [3.0, 6.0, 12.0]), ((jnp.float32(1.0) + x).array(), [2, 3, 5]),
+                      ((-x).array(), [-1.0, -2.0, -4.0])):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want, np.float32))
     # of: a scalar on every channel; an RGB as it is; array() builds the (3,) array back
     x = m.RGB.of(jnp.float32(2.5))
     assert np.asarray(x.array()).tolist() == [2.5, 2.5, 2.5] and m.RGB.of(x) is x
