@@ -87,10 +87,8 @@ class AbstractPointLikeLight(AbstractLight):
         possibly infinite)."""
 
     def sample_li(self, p, u=None) -> LightSample:
-        v = self.position - p
-        dist2 = dot(v, v)
-        wi = safe_normalize(v)
-        return LightSample(wi, safe_sqrt(dist2), safe_div(self.intensity_toward(-wi), dist2), jnp.float32(1.0))
+        wi, dist, rgb, scale = self.sample_scale(p)
+        return LightSample(wi, dist, rgb * scale, jnp.float32(1.0))
 
     def pdf_li(self, p, wi, dist):
         return jnp.float32(0.0)
