@@ -440,10 +440,12 @@ def direct_on_segment(tr: Tracer, state: PathState, seg: Segment, ok) -> RGB:
         p_all = jnp.where(live, p_eq + vertex_pdf(tr, o, d, seg.s, seg.q, seg.eq, te, p_eqs), 1.0)
         use = live & ~occluded(pk, xe, wi, dist)
         # what every channel reads (the shadow ray, the light's profile, the phase function, the MIS weight),
-        # computed once
-        k, wi, dist, use = computed_once(tr, (k * med.phase.eval(d, wi) * safe_div(1.0, p_all), wi, dist, use))
-        f = RGB.of(med.scattering(xe)) * med.transmittance(o, d, te)
-        c = state.beta * f * rgb * med.transmittance(xe, wi, dist) * k
+        # computed once; the factors are kept apart and multiplied in the order of the radiometry (their product
+        # alone can overflow where the whole contribution does not: a peaked phase function next to a light)
+        ph, inv_p, k, wi, dist, use = computed_once(
+            tr, (med.phase.eval(d, wi), safe_div(1.0, p_all), k, wi, dist, use))
+        f = RGB.of(med.scattering(xe)) * med.transmittance(o, d, te) * ph
+        c = state.beta * f * (rgb * k) * med.transmittance(xe, wi, dist) * inv_p
         L = L + where_rgb(use, c, 0.0)
     return L
 
@@ -469,17 +471,17 @@ def nee(tr: Tracer, U, p, shadow_o, response: Callable, dir_pdf: Callable, beta:
             wi, dist, rgb, scale, pdf = ls.wi, ls.dist, ls.value, jnp.float32(1.0), ls.pdf
         vis = ~occluded(tr.pk, shadow_o, wi, dist)
         if light.is_delta:
-            use = ok & vis
+            weight, use = jnp.float32(1.0), ok & vis
             if seg is not None and id(light) in point_index:
                 p_eq = seg.p_eq[point_index[id(light)]]
-                scale = scale * jnp.where(seg.scattered, safe_div(seg.pdf, seg.pdf + p_eq), 1.0)
+                weight = jnp.where(seg.scattered, safe_div(seg.pdf, seg.pdf + p_eq), 1.0)
         else:
-            scale = safe_div(power_heuristic(pdf, dir_pdf(wi)), pdf)
+            weight = safe_div(power_heuristic(pdf, dir_pdf(wi)), pdf)
             use = ok & vis & (pdf > 0)
         # what every channel reads (the shadow ray, the response, the light's profile, the MIS weight), computed once
-        resp, wi, dist, scale, use = computed_once(tr, (response(wi), wi, dist, scale, use))
+        resp, scale, weight, wi, dist, use = computed_once(tr, (response(wi), scale, weight, wi, dist, use))
         tr_l = tr.medium.transmittance(p, wi, dist) if tr.medium is not None else 1.0
-        c = beta * resp * rgb * tr_l * scale
+        c = beta * resp * (rgb * scale) * tr_l * weight
         L = L + where_rgb(use, c, 0.0)
     return L
 
