@@ -50,6 +50,13 @@ EPS_OFFSET = 1e-4
 
 ESTIMATORS = ("detached", "reparam", "proposal")
 
+BETA_MAX = 1e20
+"""Largest path throughput (per channel) a path continues with. A larger one (NaN and inf included) ends the path:
+it arises only where the sampler is far from the medium (the "proposal" estimator with a reference of g = 0 for a
+medium of g = 1 - 1e-7 multiplies the throughput by ~1e14 per forward scattering), and the next vertex's light
+sample (its phase value up to ~1e14 in float32, the light's 1/r^2) would overflow float32 (3.4e38) into inf and, times
+a zero, NaN. Paths of a throughput below it are unchanged; the image of any practical sampler is too."""
+
 
 # ----------------------------------------------------------------------------------------------------- options
 class SamplingOptions(eqx.Module):
@@ -644,13 +651,16 @@ def direct_at_vertex(tr: Tracer, state: PathState, hit: Hit, seg: Segment, ok, U
 
 # ------------------------------------------------------------------------------------------------- the tracer
 def update(state: PathState, seg: Segment, L: RGB, med: Next | None, surf: Next) -> PathState:
-    """The next path state: the medium vertex's continuation where the path scattered, else the surface's."""
+    """The next path state: the medium vertex's continuation where the path scattered, else the surface's; a path
+    whose throughput exceeds `BETA_MAX` ends."""
     if med is None:
         nxt, alive = surf, surf.alive
     else:
         nxt = Next(*(where_rgb(seg.scattered, a, b) if isinstance(a, RGB) else jnp.where(seg.scattered, a, b)
                      for a, b in zip(med, surf)))
         alive = state.alive & (seg.scattered | surf.alive)
+    b = nxt.beta
+    alive = alive & (b.r <= BETA_MAX) & (b.g <= BETA_MAX) & (b.b <= BETA_MAX)  # (NaN compares False)
     return PathState(nxt.o, nxt.d, where_rgb(alive, nxt.beta, 0.0).array(), L.array(), alive, nxt.specular, nxt.pdf,
                      nxt.in_medium)
 
