@@ -318,3 +318,25 @@ def test_hg_pdf_backward_peak_for_negative_g(g):
                 - 1.5 * (1 - g * g) * (2 * g - 2 * cos) / (4 * np.pi * (1 + g * g - 2 * g * cos) ** 2.5))
         if omc <= 2.0:
             assert float(grads[1]) == pytest.approx(dref, rel=1e-3, abs=1e-6 * abs(dref) + 1e-9)
+
+
+def test_a_path_whose_throughput_overflows_ends(monkeypatch):
+    """The "proposal" estimator (reference g = 0) on a medium of g = 1 - 1.2e-7: the ray through the spot's apex with
+    all uniforms 0 scatters forward at t = 0 toward the light again and again, and its throughput grows by ~1e14 a
+    vertex. The path ends once the throughput passes `BETA_MAX`, so its radiance stays finite; without that bound
+    (`BETA_MAX = inf`) the next light sample overflows float32 and the radiance is not finite (compiled as the grid
+    is, at XLA's optimisation level 0; at the default level the overflow can round the other way)."""
+    o_sp, d_sp = _special_rays()
+    o, d = o_sp[1], d_sp[1]  # exactly through the spot light's apex
+    scene = SCENE.replace_medium(sigma_t=1.0, albedo=1.0, g=0.9999999)
+    reference = jf.HomogeneousMedium(sigma_t=1.0, albedo=1.0, phase=jf.HenyeyGreenstein(0.0))
+    U = jnp.zeros((I.n_iterations(scene), I.n_dims(scene)), jnp.float32)
+
+    def radiance():
+        tracer = I.make_tracer(scene, pack(scene), jf.SamplingOptions(estimator="proposal"), reference)
+        return np.asarray(jax.jit(lambda: I.trace_path(tracer, o, d, U), compiler_options=FAST_COMPILE)())
+
+    L = radiance()
+    assert np.isfinite(L).all() and L.min() > 0, L
+    monkeypatch.setattr(I, "BETA_MAX", float("inf"))
+    assert not np.isfinite(radiance()).all()
