@@ -1,13 +1,14 @@
 """Recover medium parameters from target images.
 
     python -m fitting.fit SCENE.json TARGET.exr [MORE_TARGETS.exr | SCENE2.json TARGET2.exr ...] \
-        --fit sigma_t g [albedo intensity] [--init sigma_t=0.3 g=0.0] [--spp N] [--seed S] [--solver lm|bfgs] \
+        --fit sigma_t g [albedo intensity] [--init sigma_t=0.3 g=0.0] [--spp N] [--budget SECONDS] [--seed S] \
         [--downscale F] --out RESULT.json
 
 Each target is fitted with the scene file named most recently before it; all targets are one medium, fitted jointly.
 Writes RESULT.json, RESULT.png (target | fit | difference per view) and RESULT_convergence.png; prints a table of
 the estimate with its uncertainty and, when the targets' headers record the truth, the true values. Exits 1 when the
-fit fails (solver not converged, estimate still moving, or the model does not explain the targets), 2 on bad input.
+fit fails (the model does not explain the targets from any start the search found, a parameter is not pinned down
+or ran to the edge of its range), 2 on bad input. The solver is `fitting.solver` (docs/fitting.md).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ import sys
 
 import numpy as np
 
-from .core import FitConfig, make_view, fit_views
+from .problem import make_view
+from .solver import FitConfig, fit_views
 from jaxfog._validate import LimitError, check_size
 
 from .params import SPECS, FitError, check_names, check_value, scene_values
@@ -67,11 +69,6 @@ def check_outputs(out: str, inputs) -> list[str]:
     return paths
 
 
-PLAUSIBLE_BRIGHTNESS = 30.0
-"""A target whose mean is more than this factor brighter or darker than a quick render of the initial guess is
-refused: the fit's parameters change the mean by far less over their useful range (the shipped targets: within 3x)."""
-
-
 PREVIEW_SIDE = 64
 """Largest side (px) of the figure's renders: the comparison figure renders the estimate at the target's resolution
 pooled by the smallest divisor of the fit's downscale that brings it to at most this (128 x 128 targets: 64 x 64,
@@ -87,28 +84,12 @@ def preview_downscale(width: int, height: int, fit_downscale: int) -> int:
     return fit_downscale
 
 
-def check_target_brightness(view, scene, spp: int = 4, seed: int = 12345) -> None:
-    """Refuse a target that no parameters near the initial guess could explain: black (all zero), or with a mean
-    more than `PLAUSIBLE_BRIGHTNESS` times brighter or darker than a quick `spp`-sample render of `scene` (the
-    initial guess at the fit resolution)."""
-    import jax
-
-    import jaxfog
-
-    t = float(np.mean(view.target))
-    if not t > 0.0:
+def check_target_not_black(view) -> None:
+    """Refuse a black target (every pixel 0) before any work: nothing to fit. A target of another brightness is
+    judged after the global search, against what the searched region renders (`fitting.search.check_brightness`)."""
+    if not float(np.mean(view.target)) > 0.0:
         raise FitError(f"{view.name}: target is black (every pixel 0): nothing to fit; a target rendered with the "
                        f"light off, or the wrong file?")
-    # the fit's own render (the "proposal" estimator at the fit's spp): its compiled program is the fit's, not one more
-    kw = ({"estimator": "proposal", "proposal": jax.lax.stop_gradient(scene.medium)} if scene.medium is not None
-          else {})
-    img = jaxfog.check_finite(np.asarray(jaxfog.render(scene, jax.random.key(seed), spp, **kw)),
-                              f"{view.name}: render of the initial guess")
-    m = float(np.mean(img))
-    if m > 0.0 and not (1.0 / PLAUSIBLE_BRIGHTNESS <= t / m <= PLAUSIBLE_BRIGHTNESS):
-        raise FitError(f"{view.name}: target mean {t:.4g} is {t / m:.3g}x the mean {m:.4g} of a {spp}-spp render of "
-                       f"the initial guess; plausible range [1/{PLAUSIBLE_BRIGHTNESS:g}, {PLAUSIBLE_BRIGHTNESS:g}]x: "
-                       f"a target of another scene, or at another exposure?")
 
 
 def json_safe(x):
@@ -162,29 +143,20 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("inputs", nargs="+", help="SCENE.json TARGET.exr [MORE_TARGETS.exr | SCENE2.json TARGET2.exr ...]")
     p.add_argument("--fit", nargs="+", default=["sigma_t", "g"], help=f"parameters to fit: {', '.join(SPECS)}")
-    p.add_argument("--init", nargs="*", default=[], help="starting values, e.g. sigma_t=0.3 g=0.0 (default: the scene file's)")
-    p.add_argument("--spp", type=int, default=256, help="samples per pixel of each render inside the solver (default 256)")
+    p.add_argument("--init", nargs="*", default=[],
+                   help="starting values, e.g. sigma_t=0.3 g=0.0 (default: the scene file's): a hint for the global "
+                        "search, which scans the parameters' plausible range whatever the start")
+    p.add_argument("--spp", type=int, default=256,
+                   help="samples per pixel of the solver's unit render (default 256); its passes are multiples of it")
     p.add_argument("--seed", type=_seed, default=0,
                    help="seed of the fit's keys, in [0, 4294967295] (targets use other seeds)")
-    p.add_argument("--solver", choices=["lm", "bfgs"], default="lm", help="Levenberg–Marquardt (default) or BFGS")
     p.add_argument("--downscale", type=int, default=None,
                    help="fit at 1/F of the target resolution (box-pooled target; default: the largest F that divides "
                         "the image size and leaves at least 8 px a side: few pixels with many samples each keep "
                         "the Jacobian's noise low, docs/results/fit_sweep)")
-    p.add_argument("--rounds", type=int, default=20, help="re-centring rounds at most, each with a fresh key (default 20)")
-    p.add_argument("--repeats", type=int, default=2,
-                   help="at least REPEATS+1 averaging rounds before the stopping rule may stop (default 2)")
-    p.add_argument("--value-spp-factor", type=int, default=None, metavar="K",
-                   help="each round's residual value is rendered at K x --spp (default: FitConfig's)")
-    p.add_argument("--steps", choices=["averaged", "lm"], default="averaged",
-                   help="rounds after the burn-in: one Gauss-Newton step with Jacobians averaged over rounds "
-                        "(default), or an LM solve with step gain as in the burn-in")
-    p.add_argument("--first-round", choices=["split", "lm"], default="split",
-                   help="round 0: a split-pass Gauss-Newton step like the later approach rounds (default), or an "
-                        "optimistix Levenberg-Marquardt solve (for starts far from the solution)")
-    p.add_argument("--residuals", choices=["decorrelated", "plain"], default="decorrelated",
-                   help="LM residuals: value at the reference from an independent key (default), or plain fixed-key "
-                        "residuals (biased toward parameters with less render noise; for comparison)")
+    p.add_argument("--budget", type=float, default=None, metavar="SECONDS",
+                   help="time budget of the fit itself: the estimate stops with the passes it has when it is spent "
+                        "(default: none; the fit stops when its standard errors reach 1%% or stop shrinking)")
     p.add_argument("--candidates", nargs="+", default=[], metavar="SCENE.json",
                    help="after the fit, rank these views (scene files of the same medium: other cameras or lights) by "
                         "how much a target of each would shrink the uncertainty")
@@ -221,10 +193,8 @@ def _run(args) -> int:
     init_given = parse_assignments(args.init)
     if args.spp < 1:
         raise FitError(f"--spp must be >= 1, got {args.spp}")
-    if args.value_spp_factor is not None and args.value_spp_factor < 1:
-        raise FitError(f"--value-spp-factor must be >= 1, got {args.value_spp_factor}")
-    if args.rounds < 1 or args.repeats < 1:
-        raise FitError(f"--rounds and --repeats must be >= 1, got {args.rounds} and {args.repeats}")
+    if args.budget is not None and not args.budget > 0:
+        raise FitError(f"--budget must be > 0 seconds, got {args.budget}")
     not_fitted = sorted(set(init_given) - set(names))
     if not_fitted:
         raise FitError(f"--init {' '.join(f'{n}={init_given[n]:g}' for n in not_fitted)}: not in --fit "
@@ -249,11 +219,12 @@ def _run(args) -> int:
             args.downscale = auto_downscale(sf.scene.camera.width, sf.scene.camera.height)
         name = os.path.basename(target_path)
         cam = sf.scene.camera
-        value_spp = args.spp * (args.value_spp_factor or FitConfig.value_spp_factor)
-        check_size(cam.width // max(args.downscale, 1), cam.height // max(args.downscale, 1), value_spp,
+        pass_spp = args.spp * FitConfig.estimate_factor // 2
+        check_size(cam.width // max(args.downscale, 1), cam.height // max(args.downscale, 1), pass_spp,
                    sf.scene.max_depth, names={"width": f"{os.path.basename(scene_path)}: camera.width / --downscale",
                                               "height": "camera.height / --downscale",
-                                              "spp": "--spp x --value-spp-factor", "max_depth": "integrator.max_depth"})
+                                              "spp": f"--spp x {FitConfig.estimate_factor // 2} (an estimate pass)",
+                                              "max_depth": "integrator.max_depth"})
         views.append(make_view(sf.scene, target, name, args.downscale, spp_t))
         scenes_full.append(sf.scene)
         targets_full.append(target)
@@ -266,17 +237,11 @@ def _run(args) -> int:
     for n in names:
         if init[n] is None:
             raise FitError(f"cannot fit {n}: the scene has no such value")
-    from .params import apply
-
-    for v in views:  # before the fit: a black target, or one of another brightness, cannot be fitted
-        check_target_brightness(v, apply(v.scene, init), spp=args.spp)
-    extra = {} if args.value_spp_factor is None else {"value_spp_factor": args.value_spp_factor}
-    if args.steps == "lm":
-        extra["average_jacobians"] = 0
-    cfg = FitConfig(spp=args.spp, seed=args.seed, solver=args.solver, max_rounds=args.rounds, repeats=args.repeats,
-                    decorrelate=args.residuals == "decorrelated", first_round=args.first_round, **extra)
+    for v in views:
+        check_target_not_black(v)
+    cfg = FitConfig(spp=args.spp, seed=args.seed, time_budget=args.budget)
     print(f"fitting {', '.join(names)} to {len(views)} target(s) at "
-          f"{views[0].scene.camera.width}x{views[0].scene.camera.height} px, {args.spp} spp, solver {args.solver}")
+          f"{views[0].scene.camera.width}x{views[0].scene.camera.height} px, {args.spp} spp")
     log = (lambda *_: None) if args.quiet else print
     result = fit_views(views, names, init, cfg, log=log)
 
@@ -294,7 +259,7 @@ def _run(args) -> int:
     if ranking is not None:
         payload["candidates"] = ranking
     payload.update({"targets": [v.name for v in views], "truth": truth, "spp": args.spp, "seed": args.seed,
-                    "solver": args.solver, "downscale": args.downscale})
+                    "budget": args.budget, "downscale": args.downscale})
     write_json_atomic(args.out, payload)
     base = os.path.splitext(args.out)[0]
     from .plots import plot_convergence, plot_comparison
@@ -347,7 +312,7 @@ def rank_candidates(result, views, candidates, target_spp: int, spp: int) -> lis
     information of every view is `fitting.core.candidate_fisher` at the estimate, the targets' noise alone."""
     import jax
 
-    from .core import candidate_fisher
+    from .problem import candidate_fisher
     from .information import rank_views
 
     names = result.names
@@ -374,21 +339,22 @@ def rank_candidates(result, views, candidates, target_spp: int, spp: int) -> lis
 
 def print_table(result, truth: dict) -> None:
     print()
-    print(f"{'param':<10} {'init':>9} {'estimate':>10} {'± se':>9} {'sd(keys)':>9} {'true':>9} {'error':>9}")
+    print(f"{'param':<10} {'init':>9} {'estimate':>10} {'± se':>9} {'target':>9} {'renders':>9} {'true':>9} "
+          f"{'error':>9}")
     for n in result.names:
         u = result.uncertainty[n]
         t = truth.get(n)
         err = f"{result.params[n] - t:+.4f}" if t is not None else ""
         ts = f"{t:.4f}" if t is not None else "?"
-        print(f"{n:<10} {result.init[n]:>9.4f} {result.params[n]:>10.4f} {u['se']:>9.4f} {u['sd_repeats']:>9.4f} "
-              f"{ts:>9} {err:>9}")
+        print(f"{n:<10} {result.init[n]:>9.4f} {result.params[n]:>10.4f} {u['se']:>9.4f} {u['se_target']:>9.4f} "
+              f"{u['se_render']:>9.4f} {ts:>9} {err:>9}")
     status = "converged" if result.success else "FAILED"
-    print(f"{status}: {result.iterations} solver steps in {result.rounds} round(s) + repeats, {result.wall_s:.1f} s, "
-          f"residual/noise {result.chi2:.2f}")
+    print(f"{status}: {result.rounds} round(s), {result.wall_s:.1f} s, residual/noise {result.chi2:.2f} "
+          f"(± se: from the residuals; target, renders: the noise model's parts)")
     if result.correlation is not None and len(result.names) > 1:
         c = np.asarray(result.correlation)
         pairs = [f"{a}~{b} {c[i, j]:+.2f}" for i, a in enumerate(result.names) for j, b in enumerate(result.names) if j > i]
-        print("correlation of the estimates (from the Jacobian): " + ", ".join(pairs))
+        print("correlation of the estimates: " + ", ".join(pairs))
     info = getattr(result, "information", None) or {}
     for line in info.get("summary", []):
         print("what the views determine: " + line)

@@ -92,6 +92,11 @@ class ParamSpec:
     unit: str
     get: Callable
     set: Callable
+    search: tuple | str = ()
+    """The region the global search scans (`fitting.search.search_box`): a fixed `(lo, hi)` inside the valid range,
+    or a kind whose range follows from the scene's size L and the starting value x0: "extinction" (optical depth
+    0.01 to 20 over L, and x0 / 3 to 3 x0), "length" (L / 30 to 3 L), "offset" (x0 - L to x0 + L), "power" (x0 / 30
+    to 30 x0)."""
 
     def to_u(self, x):
         return self.transform.to_u(x)
@@ -106,7 +111,8 @@ def _medium(scene, name):
     return scene.medium
 
 
-def medium_param(name: str, transform: Transform, lo: float, hi: float, unit: str = "", field: str | None = None):
+def medium_param(name: str, transform: Transform, lo: float, hi: float, unit: str = "", field: str | None = None,
+                 search: tuple | str = ()):
     """A parameter that is a field of the scene's medium or of its phase function (`Scene.replace_medium` routes
     it); RGB fields are fitted grey (the mean is read, one value is written to every channel)."""
     field = field or name
@@ -126,13 +132,14 @@ def medium_param(name: str, transform: Transform, lo: float, hi: float, unit: st
         shape = jnp.shape(getattr(owner(scene), field))
         return scene.replace_medium(**{field: jnp.broadcast_to(value, shape)})
 
-    return ParamSpec(name, transform, lo, hi, unit, get, set_)
+    return ParamSpec(name, transform, lo, hi, unit, get, set_, search)
 
 
 CHANNELS = ("r", "g", "b")
 
 
-def channel_param(name: str, transform: Transform, lo: float, hi: float, unit: str, field: str, channel: int):
+def channel_param(name: str, transform: Transform, lo: float, hi: float, unit: str, field: str, channel: int,
+                  search: tuple | str = ()):
     """One channel (`0, 1, 2` = r, g, b) of an RGB field of the scene's medium, as its own fit parameter
     `field[r]` etc.: get reads that channel, set writes it and keeps the other two."""
     def owner_value(scene):
@@ -147,7 +154,7 @@ def channel_param(name: str, transform: Transform, lo: float, hi: float, unit: s
     def set_(scene, value):
         return scene.replace_medium(**{field: owner_value(scene).at[channel].set(value)})
 
-    return ParamSpec(name, transform, lo, hi, unit, get, set_)
+    return ParamSpec(name, transform, lo, hi, unit, get, set_, search)
 
 
 def _light_field(scene):
@@ -165,31 +172,36 @@ def _set_intensity(scene, value):
     return eqx.tree_at(lambda s: getattr(s.lights[0], field), scene, jnp.broadcast_to(value, (3,)))
 
 
+G_SEARCH = (-0.9, 0.95)
+"""The asymmetries' search range: fog and haze lie in it (forward, g 0.5-0.9 for droplets), and beyond it the phase
+function is a spike that a few-pixel render cannot tell from 0.9 / -0.9; the local solve may leave it."""
+
 SPECS = {
-    "sigma_t": medium_param("sigma_t", LOG, 0.0, np.inf, "1/unit"),
-    "g": medium_param("g", ATANH, -1.0, 1.0),
-    "albedo": medium_param("albedo", LOGIT, 0.0, 1.0),
-    "intensity": ParamSpec("intensity", LOG, 0.0, np.inf, "W/sr", _get_intensity, _set_intensity),
+    "sigma_t": medium_param("sigma_t", LOG, 0.0, np.inf, "1/unit", search="extinction"),
+    "g": medium_param("g", ATANH, -1.0, 1.0, search=G_SEARCH),
+    "albedo": medium_param("albedo", LOGIT, 0.0, 1.0, search=(0.1, 0.995)),
+    "intensity": ParamSpec("intensity", LOG, 0.0, np.inf, "W/sr", _get_intensity, _set_intensity, "power"),
     # exponential height fog (jaxfog.HeightFog); sigma_0 and base_height enter only as sigma_0 exp(h_0 / H)
-    "sigma_0": medium_param("sigma_0", LOG, 0.0, np.inf, "1/unit"),
-    "height_scale": medium_param("height_scale", LOG, 0.0, np.inf, "unit"),
+    "sigma_0": medium_param("sigma_0", LOG, 0.0, np.inf, "1/unit", search="extinction"),
+    "height_scale": medium_param("height_scale", LOG, 0.0, np.inf, "unit", search="length"),
     "base_height": medium_param("base_height", Transform(lambda x: x, lambda u: u, np.ones_like), -np.inf, np.inf,
-                                "unit"),
+                                "unit", search="offset"),
 }
 """Every fit parameter by name. A model adds its parameters here (e.g. with `medium_param`)."""
 
 # chromatic media: one parameter per channel, `sigma_t[r]` ... `albedo[b]` (`--fit sigma_t:rgb` names all three)
 for _field, _tr, _lo, _hi, _unit in (("sigma_t", LOG, 0.0, np.inf, "1/unit"), ("albedo", LOGIT, 0.0, 1.0, "")):
     for _c, _ch in enumerate(CHANNELS):
-        SPECS[f"{_field}[{_ch}]"] = channel_param(f"{_field}[{_ch}]", _tr, _lo, _hi, _unit, _field, _c)
+        SPECS[f"{_field}[{_ch}]"] = channel_param(f"{_field}[{_ch}]", _tr, _lo, _hi, _unit, _field, _c,
+                                                  "extinction" if _field == "sigma_t" else (0.1, 0.995))
 
 # phase functions: two-term HG's lobes and weight, the fog droplets' diameter (kept inside the fits' range 5..50 µm,
 # where they are smooth: jaxfog._phase.DROPLET_PIECES)
 SPECS.update({
-    "g1": medium_param("g1", ATANH, -1.0, 1.0),
-    "g2": medium_param("g2", ATANH, -1.0, 1.0),
-    "w": medium_param("w", LOGIT, 0.0, 1.0),
-    "diameter": medium_param("diameter", interval(5.0, 50.0), 5.0, 50.0, "µm"),
+    "g1": medium_param("g1", ATANH, -1.0, 1.0, search=G_SEARCH),
+    "g2": medium_param("g2", ATANH, -1.0, 1.0, search=G_SEARCH),
+    "w": medium_param("w", LOGIT, 0.0, 1.0, search=(0.05, 0.95)),
+    "diameter": medium_param("diameter", interval(5.0, 50.0), 5.0, 50.0, "µm", search=(5.5, 45.0)),
 })
 
 EXPANSIONS = {f"{f}:rgb": [f"{f}[{c}]" for c in CHANNELS] for f in ("sigma_t", "albedo")}

@@ -38,7 +38,7 @@ def plot_comparison(path, views, result, truth, spp=16, full=None) -> None:
     from .params import apply
 
     fig, axes = plt.subplots(len(views), 3, figsize=(9, 3.1 * len(views)), squeeze=False)
-    from .core import pool
+    from .problem import pool
 
     for row, v_fit in enumerate(views):
         v = full[row] if full is not None else v_fit
@@ -66,31 +66,59 @@ def plot_comparison(path, views, result, truth, spp=16, full=None) -> None:
 
 
 def plot_convergence(path, result, truth) -> None:
+    """The search and the rounds: the searched candidates over the first two parameters (colour: their two-key
+    loss, lower is better; the starts, the estimate with its 2-se box, the truth where known), then each parameter
+    per round with the estimate's 2-se band."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    h = result.history
-    names = result.names
+    h, names = result.history, result.names
+    search = result.search or {}
     fig, axes = plt.subplots(1, 1 + len(names), figsize=(3.2 * (1 + len(names)), 3))
+    ax = axes[0]
+    pts = np.asarray(search.get("points") or np.zeros((0, len(names) + 1)), np.float64)
+    if len(pts) and len(names) >= 2:
+        loss = pts[:, -1]
+        ok = np.isfinite(loss)
+        c = np.log10(np.maximum(loss[ok] - loss[ok].min(), 0) + 1e-4 * max(abs(loss[ok]).max(), 1e-12))
+        sc = ax.scatter(pts[ok, 0], pts[ok, 1], c=c, s=10, cmap="viridis_r")
+        fig.colorbar(sc, ax=ax, fraction=0.046).set_label("log10 loss above the best", fontsize=7)
+        for st in search.get("starts", []):
+            ax.plot(st[names[0]], st[names[1]], "o", mfc="none", mec="r", ms=8)
+        se = [result.uncertainty[n]["se"] for n in names[:2]]
+        ax.errorbar(result.params[names[0]], result.params[names[1]], xerr=2 * se[0], yerr=2 * se[1], fmt="r+")
+        if names[0] in truth and names[1] in truth:
+            ax.plot(truth[names[0]], truth[names[1]], "kx", ms=8)
+        if SPECS_LOG(names[0]):
+            ax.set_xscale("log")
+        ax.set_xlabel(names[0], fontsize=8)
+        ax.set_ylabel(names[1], fontsize=8)
+        ax.set_title("search (o starts, + estimate ± 2 se, x truth)", fontsize=7)
+    else:
+        ax.axis("off")
     x = np.arange(len(h))
-    rounds = np.asarray([e["round"] for e in h]) if h else np.zeros(0)
-    axes[0].semilogy(x, [e["loss"] for e in h], ".-", ms=3)
-    axes[0].set_title("loss (sum of squared relative residuals)", fontsize=8)
-    axes[0].set_xlabel("function evaluation")
     for i, n in enumerate(names):
         ax = axes[1 + i]
         ax.plot(x, [e[n] for e in h], ".-", ms=3)
+        est, se = result.params[n], result.uncertainty[n]["se"]
+        if np.isfinite(se):
+            ax.axhspan(est - 2 * se, est + 2 * se, color="C1", alpha=0.3, lw=0, label="estimate ± 2 se")
         if n in truth:
             ax.axhline(truth[n], color="k", ls="--", lw=1, label="true")
-            ax.legend(fontsize=7)
+        ax.legend(fontsize=6)
         ax.set_title(n, fontsize=9)
-        ax.set_xlabel("function evaluation")
-    for ax in axes:
-        for b in np.flatnonzero(np.diff(rounds)) + 0.5:
-            ax.axvline(b, color="0.8", lw=0.8)
-    fig.suptitle("convergence (grey lines: a new round, re-centred proposal and fresh key)", fontsize=8)
+        ax.set_xticks(x)
+        ax.set_xticklabels([e["phase"][0] for e in h], fontsize=6)
+        ax.set_xlabel("round (s search, a approach, e estimate)", fontsize=7)
     fig.tight_layout()
     _save(fig, path)
     plt.close(fig)
+
+
+def SPECS_LOG(name) -> bool:
+    """Whether a parameter is positive with a log coordinate (plotted on a log axis)."""
+    from .params import LOG, SPECS
+
+    return SPECS[name].transform is LOG

@@ -1,0 +1,256 @@
+"""The fit's problem: target views at the fit resolution and the renders the solver asks for.
+
+A `View` is one target image with its scene, both brought to the fit resolution (the target box-pooled by an integer
+factor `f`). `Problem` turns the unconstrained parameters `y` (`fitting.params`) into renders of every view, in the
+*scaled units* the solver works in: each view's pixels divided by the mean of its target (so views of different
+brightness count alike) and the whole residual vector by `sqrt(n)` (n: pixel values of all views together).
+
+Three kinds of render, each one compiled program however often it is called:
+- `scan`: plain renders of many candidate parameter vectors at once (`jax.vmap` over the candidates), for the global
+  search;
+- `pass_`: one forward-mode pass at `y` (value, per-pixel variance and Jacobian from the same samples), with the
+  "proposal" estimator whose reference medium is the medium at `y` (docs/estimators.md: for a fixed key the image is
+  then a smooth function of the parameters, and the Jacobian is that of an unbiased estimate);
+- `images`: renders at one `y` (figures, checks).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxfog
+
+from .params import FitError, apply, from_unconstrained, jacobian_to_params, to_unconstrained
+
+
+class View(NamedTuple):
+    """One target image of the medium: the scene and the target at the fit resolution, and what is known of the
+    target's noise.
+
+    `target_spp`: samples per pixel of a jaxfog target (its header), else None; `target_var`: per-pixel variance of the
+    pooled target estimated from the full-resolution target itself (`block_noise`); `downscale`: the pooling factor."""
+
+    scene: jaxfog.Scene
+    target: np.ndarray
+    name: str
+    target_spp: int | None = None
+    target_var: np.ndarray | None = None
+    downscale: int = 1
+
+
+def pool(img: np.ndarray, f: int) -> np.ndarray:
+    """Box-downsample `(H, W, C)` by an integer factor (exact: a pixel is the mean of its f x f square)."""
+    if f == 1:
+        return img
+    H, W, C = img.shape
+    return img.reshape(H // f, f, W // f, f, C).mean(axis=(1, 3))
+
+
+def block_noise(img: np.ndarray, f: int) -> np.ndarray:
+    """Per-pixel noise variance of `pool(img, f)`, estimated from `img` alone.
+
+    For independent pixel noise of variance v, the second difference `x[i-1] - 2 x[i] + x[i+1]` has variance 6 v and
+    cancels a linear trend: its square / 6, averaged over both directions and over each f x f block, estimates v
+    there, and the pooled pixel has v / f^2. Image curvature (edges) adds to it: the estimate errs toward more noise."""
+    x = np.asarray(img, np.float64)
+    v = np.zeros_like(x)
+    cnt = np.zeros_like(x)
+    if x.shape[1] >= 3:
+        v[:, 1:-1] += (x[:, 2:] - 2 * x[:, 1:-1] + x[:, :-2]) ** 2 / 6.0
+        cnt[:, 1:-1] += 1
+    if x.shape[0] >= 3:
+        v[1:-1] += (x[2:] - 2 * x[1:-1] + x[:-2]) ** 2 / 6.0
+        cnt[1:-1] += 1
+    v = np.where(cnt > 0, v / np.maximum(cnt, 1), np.nan)
+    fill = np.nanmean(v) if np.any(cnt > 0) else 0.0
+    v = np.where(np.isfinite(v), v, fill)
+    return pool(v, f) / (f * f)
+
+
+def box_mean(img: np.ndarray, r: int) -> np.ndarray:
+    """Mean of `img` (`(H, W, C)`) over the `(2r+1) x (2r+1)` pixels around each pixel, per channel; at the border
+    over the pixels that exist. A non-finite value stays as it is and out of its neighbours' means."""
+    x = np.asarray(img, np.float64)
+    if r <= 0:
+        return x
+    H, W = x.shape[:2]
+    ok = np.isfinite(x)
+    val = np.where(ok, x, 0.0)
+    tot = np.zeros_like(val)
+    cnt = np.zeros_like(val)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            ys, yd = slice(max(dy, 0), H + min(dy, 0)), slice(max(-dy, 0), H + min(-dy, 0))
+            xs, xd = slice(max(dx, 0), W + min(dx, 0)), slice(max(-dx, 0), W + min(-dx, 0))
+            tot[yd, xd] += val[ys, xs]
+            cnt[yd, xd] += ok[ys, xs]
+    return np.where(ok, tot / np.maximum(cnt, 1), x)
+
+
+def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int = 1, target_spp=None) -> View:
+    """Check the target against the scene's camera and bring both to the fit resolution (1 / `downscale`)."""
+    cam = scene.camera
+    target = np.asarray(target, np.float32)
+    if target.ndim != 3 or target.shape[2] != 3:
+        raise FitError(f"{name}: target must be an RGB image (H, W, 3), got shape {target.shape}")
+    if target.shape[:2] != (cam.height, cam.width):
+        raise FitError(f"{name}: target is {target.shape[1]}x{target.shape[0]} px but the scene's camera is "
+                       f"{cam.width}x{cam.height} px")
+    try:
+        jaxfog.check_finite(target, f"{name}: target")
+    except FloatingPointError as e:
+        raise FitError(str(e)) from None
+    if np.any(target < 0):
+        raise FitError(f"{name}: target has {int(np.sum(target < 0))} negative values (smallest "
+                       f"{float(target.min()):.4g}); expected linear radiance >= 0")
+    if downscale < 1 or cam.width % downscale or cam.height % downscale:
+        raise FitError(f"downscale {downscale} must be >= 1 and divide the image size {cam.width}x{cam.height}")
+    small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov,
+                          width=cam.width // downscale, height=cam.height // downscale)
+    scene = eqx.tree_at(lambda s: s.camera, scene, small)
+    return View(scene, pool(target, downscale), name, target_spp, block_noise(target, downscale), downscale)
+
+
+@eqx.filter_jit
+def _scan_program(scenes, names, Y, key, spp):
+    """Every candidate row of `Y` rendered in every scene (vmapped over the candidates; one compiled program per
+    scene structure, candidate count and spp)."""
+    def one(y):
+        vals = from_unconstrained(names, y)
+        return [jaxfog.render(apply(s, vals), jax.random.fold_in(key, i), spp) for i, s in enumerate(scenes)]
+    return jax.vmap(one)(Y)
+
+
+class Pass(NamedTuple):
+    """One forward-mode pass at `y` in scaled units: `e` the residual (render - target), `u` each element's variance
+    of ONE sample (the render's per-pixel sample variance times its spp), `J` the Jacobian `d e / d y`, `spp` its
+    samples per pixel. float64 numpy arrays: `e`, `u` of shape `(n,)`, `J` of shape `(n, k)`."""
+
+    e: np.ndarray
+    u: np.ndarray
+    J: np.ndarray
+    spp: int
+
+
+class Problem:
+    """All views' renders as functions of the unconstrained parameters `y` (`fitting.params`), in scaled units.
+
+    `scales[v]`: the mean of view v's target (floored at 1e-8); `n`: pixel values of all views; `pixel_of[i]`: the
+    pixel (over all views) that element i belongs to, for per-pixel sums over the three channels."""
+
+    def __init__(self, views: list[View], names: list[str]):
+        if not views:
+            raise FitError("no targets given")
+        self.views, self.names = views, list(names)
+        self.scales = [float(max(np.mean(v.target), 1e-8)) for v in views]
+        self.n = sum(v.target.size for v in views)
+        self.t = np.concatenate([(np.asarray(v.target, np.float64) / s).ravel()
+                                 for v, s in zip(views, self.scales)]) / math.sqrt(self.n)
+        self.pixel_of = np.arange(self.n) // 3
+
+    def reference(self, y) -> jaxfog.AbstractMedium | None:
+        """The "proposal" estimator's reference medium: the medium at `y`, constant to differentiation."""
+        med = apply(self.views[0].scene, from_unconstrained(self.names, y)).medium
+        return None if med is None else jax.lax.stop_gradient(med)
+
+    def _render(self, view: View, vals: dict, key, spp: int, ref, variance=False):
+        kw = {"estimator": "proposal", "proposal": ref} if ref is not None else {}
+        return jaxfog.render(apply(view.scene, vals), key, spp, variance=variance, **kw)
+
+    def images(self, y, key, spp: int) -> list[np.ndarray]:
+        """One render per view at `y` (linear radiance, `(h, w, 3)` each), "proposal" with reference at `y`."""
+        ref, vals = self.reference(y), from_unconstrained(self.names, jnp.asarray(y, jnp.float32))
+        return [np.asarray(self._render(v, vals, jax.random.fold_in(key, i), spp, ref), np.float64)
+                for i, v in enumerate(self.views)]
+
+    def flat(self, images) -> np.ndarray:
+        """Images of every view (linear radiance) as one vector in scaled units."""
+        return np.concatenate([(np.asarray(x, np.float64) / s).ravel()
+                               for x, s in zip(images, self.scales)]) / math.sqrt(self.n)
+
+    def scan(self, Y: np.ndarray, key, spp: int) -> np.ndarray:
+        """Renders of every row of `Y` (`(N, k)` unconstrained parameter vectors) with the same key (common random
+        numbers: the differences between candidates are smooth), as `(N, n)` in scaled units."""
+        out = _scan_program(tuple(v.scene for v in self.views), tuple(self.names), jnp.asarray(Y, jnp.float32), key,
+                            int(spp))
+        out = [np.asarray(o, np.float64) for o in out]
+        return np.stack([self.flat([o[c] for o in out]) for c in range(len(Y))])
+
+    def pass_(self, y, key, spp: int) -> Pass:
+        """Value, per-sample variance and Jacobian of the residual at `y` from ONE forward-mode pass of `spp`."""
+        ref = self.reference(y)
+
+        def f(yy):
+            vals = from_unconstrained(self.names, yy)
+            outs = [self._render(v, vals, jax.random.fold_in(key, i), spp, ref, variance=True)
+                    for i, v in enumerate(self.views)]
+            flat = jnp.concatenate([(img / s).ravel() for (img, _), s in zip(outs, self.scales)])
+            return flat, (jax.lax.stop_gradient(flat), [jax.lax.stop_gradient(var) for _, var in outs])
+
+        J, (img, var) = jax.jacfwd(f, has_aux=True)(jnp.asarray(y, jnp.float32))
+        root = math.sqrt(self.n)
+        e = np.asarray(img, np.float64) / root - self.t
+        u = np.concatenate([(np.asarray(v, np.float64) * spp / (s * s)).ravel()
+                            for v, s in zip(var, self.scales)]) / self.n
+        return Pass(e, u, np.asarray(J, np.float64) / root, spp)
+
+    def target_variance(self, u: np.ndarray | None) -> np.ndarray:
+        """Each element's variance of the target (scaled units): for a jaxfog target from its header's spp (the
+        render's per-sample variance `u` over the `spp_T f^2` samples of a pooled pixel), else from the target
+        itself (`View.target_var`, the block estimate)."""
+        parts, at = [], 0
+        for v, s in zip(self.views, self.scales):
+            nv = v.target.size
+            if v.target_spp and u is not None:
+                parts.append(u[at:at + nv] / (v.target_spp * v.downscale ** 2))
+            else:
+                tv = v.target_var if v.target_var is not None else np.zeros(v.target.shape)
+                parts.append(np.asarray(tv, np.float64).ravel() / (s * s * self.n))
+            at += nv
+        return np.concatenate(parts)
+
+    def split(self, x: np.ndarray) -> list[np.ndarray]:
+        """A vector over all elements as one `(h, w, 3)` array per view."""
+        out, at = [], 0
+        for v in self.views:
+            out.append(np.asarray(x[at:at + v.target.size]).reshape(v.target.shape))
+            at += v.target.size
+        return out
+
+
+def candidate_fisher(scene: jaxfog.Scene, names: list[str], values: dict, spp: int, target_samples: float | None,
+                     key, noise: np.ndarray | None = None) -> np.ndarray:
+    """The Fisher information (parameters' units) a target of `scene`'s view would add at the estimate `values`:
+    `sym(Ja^T W Jb)` with Ja, Jb the Jacobians of the view's pixels from two independent `spp`-sample "proposal"
+    renders (no Monte Carlo `Var[J]` in it; negative eigenvalues clipped to 0) and `W` the inverse of the target's
+    per-pixel noise variance: the render's per-sample variance over `target_samples` samples per pixel, or `noise`
+    (per element, e.g. a target's own block estimate) where given, floored at 0.1 of the median. `scene` at the
+    resolution it would be fitted at. For `fitting.information.rank_views`."""
+    y = to_unconstrained(names, values)
+    d = jacobian_to_params(names, np.asarray(y))
+    med = apply(scene, values).medium
+    ref = None if med is None else jax.lax.stop_gradient(med)
+    kw = {"estimator": "proposal", "proposal": ref} if ref is not None else {}
+    Js, var = [], None
+    for kk in jax.random.split(key):
+        def f(yy, kk=kk):
+            img, v = jaxfog.render(apply(scene, from_unconstrained(names, yy)), kk, spp, variance=True, **kw)
+            return img.ravel(), jax.lax.stop_gradient(v).ravel()
+        J, v = jax.jacfwd(f, has_aux=True)(y)
+        Js.append(np.asarray(J, np.float64) / d[None, :])
+        var = np.asarray(v, np.float64) if var is None else 0.5 * (var + np.asarray(v, np.float64))
+    noise = var * spp / float(target_samples) if noise is None else np.asarray(noise, np.float64).ravel()
+    pos = noise[np.isfinite(noise) & (noise > 0)]
+    if pos.size == 0:
+        return np.full((len(names), len(names)), np.nan)
+    noise = np.maximum(np.where(np.isfinite(noise), noise, np.inf), 0.1 * float(np.median(pos)))
+    Ja, Jb = Js
+    F = 0.5 * (Ja.T @ (Jb / noise[:, None]) + Jb.T @ (Ja / noise[:, None]))
+    w, V = np.linalg.eigh(0.5 * (F + F.T))
+    return (V * np.maximum(w, 0.0)) @ V.T

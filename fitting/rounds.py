@@ -1,0 +1,216 @@
+"""The fit's rounds as pure functions of named inputs: the Gauss-Newton step from two independent halves, its
+covariance, the pixel weights, and the model check.
+
+Notation (scaled units, `fitting.problem`): `e` the residual (render - target) per element, `J` its Jacobian in the
+unconstrained coordinates, `w` per-element weights (the weight matrix is `W = diag(w^2)`), `u` each element's
+per-sample render variance. A pass is rendered as two halves `a`, `b` with independent keys.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from .problem import Pass, Problem, box_mean
+
+MEDIAN_CHI2_1 = 0.454936
+"""The median of chi^2 with one degree of freedom: `median(z^2)` of standard normal residuals."""
+
+
+class Step(NamedTuple):
+    """A Gauss-Newton step from a pair of independent halves and what it knows of its own noise.
+
+    `delta` (k,): the step in the unconstrained coordinates; `A` (k, k) the two-key normal matrix; `cov` (k, k) the
+    step's covariance from the residuals themselves (`robust_covariance`); `cov_render` the part of it the renders'
+    noise explains (`model_covariance` with the renders' own variances), `cov_target` the part the target's noise
+    model explains; `r` (n,) the residual after the step (linearised); `J` (n, k) the halves' mean Jacobian;
+    `var_render` (n,) the render's variance of each element of the mean residual."""
+
+    delta: np.ndarray
+    A: np.ndarray
+    cov: np.ndarray
+    cov_render: np.ndarray
+    cov_target: np.ndarray
+    r: np.ndarray
+    J: np.ndarray
+    var_render: np.ndarray
+
+
+def spd_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    """`A^-1 b` for a symmetric positive definite `A` (Cholesky); None where A is not positive definite."""
+    try:
+        L = np.linalg.cholesky(0.5 * (A + A.T))
+    except np.linalg.LinAlgError:
+        return None
+    x = np.linalg.solve(L.T, np.linalg.solve(L, b))
+    return x if np.all(np.isfinite(x)) else None
+
+
+def weights(problem: Problem, u: np.ndarray | None, power: float, smoothing: int) -> np.ndarray:
+    """Per-element weights `w = v^(-power / 4)` (so `W = w^2 = v^(-power / 2)`), normalised to mean square 1, from the
+    renders' per-sample variances `u` of EARLIER passes (independent of the residuals they weigh).
+
+    `v` is `u` averaged over each pixel's `(2 smoothing + 1)^2` neighbourhood in its view (a heavy-tailed pixel's
+    sample variance is too low where no firefly was drawn; its neighbours' are not all low) and floored at 0.1 of the
+    median (no element gets more than ~3x the median weight at power 1/2). `power` 1 would be generalised least
+    squares with exact variances, 0 equal weights; docs/fitting.md measures the choice. Equal weights where `u` is
+    None."""
+    if u is None or power == 0:
+        return np.ones(problem.n)
+    v = np.concatenate([box_mean(x, smoothing).ravel() for x in problem.split(u)])
+    pos = v[np.isfinite(v) & (v > 0)]
+    if pos.size == 0:
+        return np.ones(problem.n)
+    v = np.where(np.isfinite(v), np.maximum(v, VAR_FLOOR * float(np.median(pos))), np.inf)
+    w = v ** (-0.25 * power)
+    return w / math.sqrt(np.mean(w ** 2))
+
+
+VAR_FLOOR = 0.1
+"""An element's variance in the weights is at least this fraction of the median element's."""
+
+
+def normal_matrix(Ja: np.ndarray, Jb: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The two-key normal matrix `sym(Ja^T W Jb)`: an unbiased estimate of `E[J]^T W E[J]` without the Jacobians'
+    own noise `Var[J]` (which a one-key `J^T W J` carries, and which shortens every step)."""
+    W = w * w
+    M = Ja.T @ (W[:, None] * Jb)
+    return 0.5 * (M + M.T)
+
+
+def model_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, var: np.ndarray,
+                     pixel_of: np.ndarray) -> np.ndarray:
+    """The sandwich `A^-1 B A^-1` of a weighted least-squares step whose residual has elements of variance `var`,
+    independent between pixels and fully correlated between a pixel's channels (its three channels are estimated
+    from the same paths; for grey media and white lights they move together): `B = sum_p s_p s_p^T` with
+    `s_p = sum_c J_c W_c sqrt(var_c)` over pixel p's channels. (Channels taken as independent instead would
+    understate a grey fit's variance up to 3x.)"""
+    W = w * w
+    s = J * (W * np.sqrt(np.maximum(var, 0.0)))[:, None]
+    P = int(pixel_of.max()) + 1
+    S = np.zeros((P, J.shape[1]))
+    np.add.at(S, pixel_of, s)
+    return A_inv @ (S.T @ S) @ A_inv
+
+
+def robust_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, r: np.ndarray,
+                      pixel_of: np.ndarray) -> np.ndarray:
+    """The step's covariance from its own residuals `r` (the cluster-robust sandwich: a pixel's three channels share
+    their paths, so each pixel is one cluster): `A^-1 B A^-1`, `B = P / (P - k) sum_p s_p s_p^T`, `s_p` the sum over
+    pixel p's elements of `J^T W r`. It needs no noise model: `E[r^2]` is the target's variance plus the renders',
+    whatever their distribution, and a model that misses the target by more than the noise widens it."""
+    W = w * w
+    s = J * (W * r)[:, None]
+    P = int(pixel_of.max()) + 1
+    S = np.zeros((P, J.shape[1]))
+    np.add.at(S, pixel_of, s)
+    k = J.shape[1]
+    B = (S.T @ S) * (P / max(P - k, 1))
+    return A_inv @ B @ A_inv
+
+
+def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixel_of: np.ndarray) -> Step | None:
+    """One Gauss-Newton step from two independent halves: `delta = -A^-1 (Ja^T W eb + Jb^T W ea) / 2`,
+    `A = sym(Ja^T W Jb)`. No Jacobian multiplies the residual from its own samples (a Jacobian and a residual from
+    the same paths are correlated, which biases the fixed point), and `A` carries no `Var[J]`. None where `A` is not
+    positive definite even with each half's own normal matrix (a parameter without effect on the images)."""
+    A = normal_matrix(pa.J, pb.J, w)
+    W = w * w
+    g = 0.5 * (pa.J.T @ (W * pb.e) + pb.J.T @ (W * pa.e))
+    delta = spd_solve(A, -g)
+    if delta is None:
+        # the halves' Jacobians are too noisy to agree: each half's own normal matrix (it carries Var[J], so the
+        # step is shorter than Gauss-Newton's) with a ridge of 1e-9 of its trace where a parameter has no effect
+        A = 0.5 * (normal_matrix(pa.J, pa.J, w) + normal_matrix(pb.J, pb.J, w))
+        A = A + np.eye(len(A)) * 1e-9 * max(float(np.trace(A)), 1e-300)
+        delta = spd_solve(A, -g)
+        if delta is None:
+            return None
+    A_inv = np.linalg.inv(A)
+    J = 0.5 * (pa.J + pb.J)
+    r = 0.5 * (pa.e + pb.e) + J @ delta
+    var_render = 0.5 * (pa.u + pb.u) / (pa.spp + pb.spp)
+    cov = robust_covariance(A_inv, J, w, r, pixel_of)
+    return Step(delta, A, cov, model_covariance(A_inv, J, w, var_render, pixel_of),
+                model_covariance(A_inv, J, w, var_target, pixel_of), r, J, var_render)
+
+
+def damped_step(pa: Pass, pb: Pass, w: np.ndarray, lam: float) -> np.ndarray | None:
+    """The Levenberg-Marquardt step from two independent halves: `(A + lam diag(A)) delta = -g`, with the two-key
+    normal matrix `A` and gradient `g` of `gauss_newton` (`lam` 0: its step). None where the matrix is not positive
+    definite even with each half's own normal matrix."""
+    W = w * w
+    g = 0.5 * (pa.J.T @ (W * pb.e) + pb.J.T @ (W * pa.e))
+    for A in (normal_matrix(pa.J, pb.J, w), 0.5 * (normal_matrix(pa.J, pa.J, w) + normal_matrix(pb.J, pb.J, w))):
+        D = np.diag(np.maximum(np.diag(A), 1e-12 * max(float(np.trace(A)), 1e-300)))
+        delta = spd_solve(A + lam * D, -g)
+        if delta is not None:
+            return delta
+    return None
+
+
+def two_key_loss(pa: Pass, pb: Pass) -> tuple[float, float]:
+    """The unbiased loss of a pair of independent halves, `L = sum(ea eb)` (its expectation is `|E[I] - T|^2` plus
+    the target's noise, which every point shares: unlike `|e|^2` it carries no render variance), and a standard
+    deviation of it (the pixels' terms taken as independent)."""
+    t = pa.e * pb.e
+    per_pixel = t.reshape(-1, 3).sum(axis=1)
+    return float(t.sum()), float(math.sqrt(np.sum(per_pixel ** 2)))
+
+
+def mahalanobis(d: np.ndarray, C: np.ndarray) -> float:
+    """`sqrt(d^T C^-1 d)`: the length of `d` in standard errors of `C` (inf where C is singular or not finite)."""
+    d = np.asarray(d, np.float64)
+    if C is None or not np.all(np.isfinite(C)):
+        return float("inf")
+    try:
+        return float(math.sqrt(max(float(d @ np.linalg.solve(C, d)), 0.0)))
+    except np.linalg.LinAlgError:
+        return float("inf")
+
+
+def chi2_quantile(k: int, p: float = 0.95) -> float:
+    """The p-quantile (p 0.95 or 0.99) of chi^2 with k degrees of freedom: exact for k = 1, 2; Wilson-Hilferty
+    above (within 0.6% for k >= 3 at p = 0.95)."""
+    exact = {(1, 0.95): 3.841459, (2, 0.95): 5.991465, (1, 0.99): 6.634897, (2, 0.99): 9.210340}
+    if (k, p) in exact:
+        return exact[(k, p)]
+    z = {0.95: 1.6448536, 0.99: 2.3263479}[p]
+    a = 2.0 / (9.0 * k)
+    return k * (1.0 - a + z * math.sqrt(a)) ** 3
+
+
+def trust_region(step: np.ndarray, max_du: float) -> np.ndarray:
+    """`step` shortened along its direction so that no unconstrained coordinate changes by more than `max_du`."""
+    step = np.asarray(step, np.float64)
+    big = float(np.max(np.abs(step))) if step.size else 0.0
+    if not (np.isfinite(max_du) and big > max_du):
+        return step
+    return step * (max_du / big)
+
+
+class Check(NamedTuple):
+    """The model check: per view and per channel the ratio of the residual to the expected noise (1 for a model
+    that explains the targets), and their maximum."""
+
+    per_view: list
+    per_channel: list
+    worst: float
+
+
+def model_check(problem: Problem, step: Step, u: np.ndarray) -> Check:
+    """Does the model explain the targets? Each element's residual after the step `r` over its expected noise (the
+    target's variance from its header's spp and the renders' per-sample variance `u`, or from its own block
+    estimate, plus the render's), as `z^2 = r^2 / var`; the ratio is `median(z^2) / median(chi^2_1)`: 1 for residuals
+    that are the noise, robust to heavy-tailed pixels. One ratio per view (its channels pooled) and one per channel
+    (the views pooled): a grey model on a chromatic target fits the channels' mean and leaves residuals of opposite
+    sign in red and blue."""
+    var = problem.target_variance(u) + step.var_render
+    z2 = step.r ** 2 / np.maximum(var, 1e-300)
+    parts = problem.split(z2)
+    views = [float(np.median(x) / MEDIAN_CHI2_1) for x in parts]
+    chan = np.concatenate([x.reshape(-1, 3) for x in parts])
+    channels = [float(np.median(chan[:, c]) / MEDIAN_CHI2_1) for c in range(3)]
+    return Check(views, channels, max(views + channels))

@@ -1,0 +1,451 @@
+"""The fit as a solver: `init`, `step`, `terminate`, `postprocess` over an explicit `FitState`.
+
+The shape is optimistix's (`AbstractIterativeSolver`), the loop runs on the host: its rounds render with fresh keys
+and make decisions from noisy estimates, which a jitted loop cannot. One round is one of four kinds, each a
+module-level function of named inputs returning the next state (docs/fitting.md gives the reasons and measurements):
+
+1. `search_round`: the global search (`fitting.search`) and the brightness check against what it can render;
+2. `approach_round`: a Gauss-Newton step from one forward-mode pass rendered as two independent halves, in a trust
+   region, until the step is within its own render noise;
+3. `estimate_round`: passes at one point `y0` accumulated until the estimate `y0 + delta` is precise enough (or
+   the renders' share of its variance is small, or the budget is spent); a step too long for its standard errors
+   re-centres `y0` first;
+4. `check_round`: the model check on the estimate's residuals; a target the attempt does not explain sends the
+   solver to the next distinct start of the search, up to `FitConfig.max_starts`.
+
+`fit_views` runs the loop: `state = init(...)`, `while not terminate(state): state = step(state)`, `postprocess`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, NamedTuple
+
+import jax
+import numpy as np
+
+from .information import fisher_report, instead, relative_scales
+from .params import SPECS, FitError, jacobian_to_params, to_unconstrained
+from .problem import Pass, Problem, View
+from .rounds import (Check, Step, chi2_quantile, damped_step, gauss_newton, mahalanobis, model_check, trust_region,
+                     two_key_loss, weights)
+from .search import Scan, check_brightness, distinct_starts, global_search
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """What a fit may spend and how it decides (the defaults are measured in docs/fitting.md).
+
+    - `spp`: samples per pixel of the unit render; an approach pass has `approach_factor` x spp, an estimate pass
+      `estimate_factor` x spp (each as two halves of independent keys). `scan_spp`: per candidate and key.
+    - `seed`: every key of the fit derives from it; the same inputs and seed give the same result.
+    - `time_budget`: seconds of the fit (None: no limit); an approach that reaches it goes to the estimate, an
+      estimate that reaches it stops with the batches it has.
+    - `precision`: the estimate stops once every standard error is at most this (relative for positive
+      quantities, absolute for g and albedo), or once more batches cannot shrink it much (`render_share`).
+    - `max_se`: a parameter whose standard error exceeds this (relative / absolute) is "not pinned down".
+    - `chi2_max`: the model check's limit on residual / expected noise.
+    - `max_starts`: local solves from distinct starts of the search before the fit says the model does not explain
+      the targets."""
+
+    spp: int = 256
+    seed: int = 0
+    time_budget: float | None = None
+    precision: float = 0.01
+    max_se: float = 0.1
+    chi2_max: float = 6.0
+    max_starts: int = 3
+    scan_spp: int = 32
+    approach_factor: int = 8
+    estimate_factor: int = 16
+    max_approach: int = 12
+    min_batches: int = 2
+    max_batches: int = 8
+    render_share: float = 0.2
+    linear_du: float = 0.05
+    max_recentres: int = 3
+    max_step_u: float = 1.0
+    weight_power: float = 0.5
+    weight_smoothing: int = 1
+
+    def __post_init__(self):
+        for f in ("spp", "scan_spp", "approach_factor", "estimate_factor", "max_approach", "min_batches",
+                  "max_batches", "max_starts"):
+            if int(getattr(self, f)) < 1:
+                raise FitError(f"FitConfig.{f} must be >= 1, got {getattr(self, f)}")
+        if self.min_batches > self.max_batches:
+            raise FitError(f"FitConfig.min_batches ({self.min_batches}) exceeds max_batches ({self.max_batches})")
+        if self.time_budget is not None and not self.time_budget > 0:
+            raise FitError(f"FitConfig.time_budget must be > 0 seconds, got {self.time_budget}")
+        for f in ("precision", "max_se", "chi2_max", "max_step_u", "linear_du"):
+            if not getattr(self, f) > 0:
+                raise FitError(f"FitConfig.{f} must be > 0, got {getattr(self, f)}")
+
+
+class Attempt(NamedTuple):
+    """One local solve that ran to its check: the point `y0` of its estimate passes, the estimate's `step`, the
+    per-sample render variances `u` there, and the model `check`."""
+
+    y0: np.ndarray
+    step: Step
+    u: np.ndarray
+    check: Check
+
+
+@dataclass(frozen=True)
+class FitState:
+    """Everything the loop carries from one round to the next (host arrays; replaced, never mutated)."""
+
+    phase: str                      # "search", "approach", "estimate", "check", "done"
+    round: int
+    y: np.ndarray                   # the current point, unconstrained coordinates
+    init: dict
+    t0: float
+    c0: float
+    scan: Scan | None = None
+    starts: tuple = ()
+    start: int = 0                  # index of the current start in `starts`
+    u: np.ndarray | None = None     # per-sample render variances of the approach's passes (the weights' source)
+    w: np.ndarray | None = None     # the estimate's weights, fixed while its passes accumulate
+    passes: tuple = ()              # the estimate's passes at `y`: ((a, b), ...)
+    step: Step | None = None        # the estimate's latest step
+    approach: int = 0               # approach rounds of this start
+    trial: np.ndarray | None = None # the approach's pending trial point (rendered next round)
+    base: tuple | None = None       # the approach's accepted point's pass pair and its two-key loss
+    lam: float = 1e-2               # the approach's damping
+    recentres: int = 0
+    failures: int = 0               # non-finite passes in a row
+    attempts: tuple = ()
+    records: tuple = ()
+    messages: tuple = ()
+
+    def replace(self, **kw) -> "FitState":
+        return dataclasses.replace(self, **kw)
+
+
+@dataclass
+class FitResult:
+    names: list
+    params: dict
+    init: dict
+    success: bool
+    messages: list
+    uncertainty: dict
+    rounds: int
+    wall_s: float
+    chi2: float = float("nan")
+    correlation: list | None = None
+    covariance: list | None = None
+    information: dict | None = None
+    history: list = field(default_factory=list)
+    timing: list = field(default_factory=list)
+    search: dict | None = None
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+# ---- the rounds -------------------------------------------------------------------------------------------------
+
+
+def _key(cfg: FitConfig, r: int):
+    return jax.random.fold_in(jax.random.key(cfg.seed), r)
+
+
+def _record(state: FitState, problem: Problem, kind: str, y, log, **extra) -> tuple:
+    vals = _values(problem.names, y)
+    rec = {"round": state.round, "phase": kind, "start": state.start, **vals,
+           "wall_s": time.perf_counter() - state.t0, "cpu_s": time.process_time() - state.c0, **extra}
+    log(f"round {state.round} ({kind}): " + "  ".join(f"{n} {vals[n]:.5g}" for n in problem.names)
+        + "".join(f"  {k} {v:.3g}" if isinstance(v, float) else f"  {k} {v}" for k, v in extra.items())
+        + f"  [{rec['wall_s']:.1f} s]")
+    return state.records + (rec,)
+
+
+def search_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> FitState:
+    """The global search (`fitting.search.global_search`), the brightness check against it, the starts."""
+    scan = global_search(problem, state.init, _key(cfg, 100_000), cfg.scan_spp)
+    check_brightness(problem, scan)
+    starts = tuple(distinct_starts(scan, cfg.max_starts))
+    if not starts:
+        raise FitError("no candidate of the searched region renders finite images")
+    state = state.replace(scan=scan, starts=starts, y=starts[0], phase="approach")
+    return state.replace(records=_record(state, problem, "search", starts[0], log, candidates=len(scan.Y),
+                                         best_loss=float(scan.loss[0])))
+
+
+def _halves(problem: Problem, y, cfg: FitConfig, r: int, factor: int) -> tuple[Pass, Pass] | None:
+    ka, kb = jax.random.split(_key(cfg, r))
+    half = max(1, factor // 2) * cfg.spp
+    pa, pb = problem.pass_(y, ka, half), problem.pass_(y, kb, half)
+    ok = all(np.all(np.isfinite(x)) for p in (pa, pb) for x in (p.e, p.u, p.J))
+    return (pa, pb) if ok else None
+
+
+def _failed_pass(problem, state: FitState, log) -> FitState:
+    msg = f"round {state.round}: a render was not finite; the round is repeated with new keys"
+    log("  (" + msg + ")")
+    if state.failures + 1 >= 3:
+        raise FloatingPointError(f"three passes in a row rendered non-finite values at "
+                                 f"{_values(problem.names, state.y)}")
+    return state.replace(round=state.round + 1, failures=state.failures + 1, messages=state.messages + (msg,))
+
+
+def _over_budget(state: FitState, cfg: FitConfig) -> bool:
+    return cfg.time_budget is not None and time.perf_counter() - state.t0 > cfg.time_budget
+
+
+def approach_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> FitState:
+    """One Levenberg-Marquardt round from a pass of `approach_factor` x spp (two halves).
+
+    The pass is rendered at the pending trial point, if any: its two-key loss against the accepted point's decides
+    (accepted when it is not higher by more than the two losses' noise; the damping shrinks on acceptance and grows
+    on rejection), then the next trial step is solved from the accepted point's pass. The approach hands over to the
+    estimate when a step of little damping is within the linear range `linear_du` or within its own render noise
+    (chi^2_k at 95%), when no damping finds a lower loss, after `max_approach` rounds, or at the budget."""
+    trial = state.trial
+    halves = _halves(problem, state.y if trial is None else trial, cfg, state.round, cfg.approach_factor)
+    if halves is None:
+        return _failed_pass(problem, state.replace(trial=None), log)
+    loss = two_key_loss(*halves)
+    y, base, lam, verdict = state.y, state.base, state.lam, ""
+    if trial is None or base is None:
+        base = (halves, loss)
+    elif loss[0] <= base[1][0] + math.hypot(loss[1], base[1][1]):
+        y, base, lam, verdict = trial, (halves, loss), max(lam / 3.0, LAMBDA_MIN), "accepted"
+    else:
+        lam, verdict = lam * 5.0, "rejected"
+    (pa, pb), _ = base
+    u_now = 0.5 * (pa.u + pb.u)
+    u = u_now if state.u is None else 0.5 * (state.u + u_now)
+    w = weights(problem, state.u, cfg.weight_power, cfg.weight_smoothing)
+    delta = damped_step(pa, pb, w, lam)
+    if delta is None:
+        raise FitError(f"the images do not change with the fitted parameters at {_values(problem.names, y)}: "
+                       f"nothing to fit")
+    step = gauss_newton(pa, pb, w, problem.target_variance(u), problem.pixel_of)
+    length = mahalanobis(delta, step.cov_render) if step is not None else float("inf")
+    small = float(np.max(np.abs(delta))) <= cfg.linear_du or length ** 2 <= chi2_quantile(len(problem.names))
+    done = ((small and lam <= LAMBDA_SMALL) or lam >= LAMBDA_MAX or state.approach + 1 >= cfg.max_approach
+            or _over_budget(state, cfg))
+    records = _record(state, problem, "approach", y, log, loss=loss[0], damping=lam, step_se=length,
+                      **({"trial": verdict} if verdict else {}))
+    nxt = dict(y=y, u=u, base=base, lam=lam, round=state.round + 1, approach=state.approach + 1, failures=0,
+               records=records)
+    if done:
+        return state.replace(**nxt, trial=None, phase="estimate",
+                             w=weights(problem, u, cfg.weight_power, cfg.weight_smoothing))
+    return state.replace(**nxt, trial=y + trust_region(delta, cfg.max_step_u))
+
+
+LAMBDA_START, LAMBDA_MIN, LAMBDA_SMALL, LAMBDA_MAX = 1e-2, 1e-4, 0.1, 1e4
+"""The approach's damping (relative to the normal matrix's diagonal): its start, its floor, the most with which a
+small step still ends the approach, and the most before the approach ends at a point no damped step improves."""
+
+
+def _combine(passes: list[Pass]) -> Pass:
+    """Passes at one point as one pass of all their samples (spp-weighted means)."""
+    n = sum(p.spp for p in passes)
+    mean = lambda f: sum(getattr(p, f) * p.spp for p in passes) / n  # noqa: E731
+    return Pass(mean("e"), mean("u"), mean("J"), n)
+
+
+def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> FitState:
+    """One more pass of `estimate_factor` x spp at `y0 = state.y`, the step from all of them together; re-centre
+    `y0` where the step changes some unconstrained coordinate by more than `linear_du` (the linearisation is trusted
+    only that near `y0`), else stop when precise enough, when more batches would barely help, or at the budget."""
+    halves = _halves(problem, state.y, cfg, state.round, cfg.estimate_factor)
+    if halves is None:
+        return _failed_pass(problem, state, log)
+    passes = state.passes + (halves,)
+    pa, pb = _combine([p[0] for p in passes]), _combine([p[1] for p in passes])
+    u = 0.5 * (pa.u + pb.u)
+    step = gauss_newton(pa, pb, state.w, problem.target_variance(u), problem.pixel_of)
+    if step is None:
+        raise FitError(f"the images do not change with the fitted parameters at {_values(problem.names, state.y)}: "
+                       f"nothing to fit")
+    length = mahalanobis(step.delta, step.cov)
+    y_hat = state.y + step.delta
+    rel = _relative_se(problem.names, y_hat, step.cov)
+    records = _record(state, problem, "estimate", y_hat, log, batches=len(passes), step_se=length,
+                      worst_se=float(np.max(rel)))
+    state = state.replace(round=state.round + 1, failures=0, records=records)
+    far = float(np.max(np.abs(step.delta))) > cfg.linear_du and length > SIGNIFICANT
+    if far and state.recentres < cfg.max_recentres and not _over_budget(state, cfg):
+        log(f"  (the estimate is {float(np.max(np.abs(step.delta))):.3f} from the passes' point in an unconstrained "
+            f"coordinate, beyond the linear range {cfg.linear_du:g}, and {length:.1f} standard errors: back to the "
+            f"approach)")
+        return state.replace(phase="approach", passes=(), recentres=state.recentres + 1, base=None, trial=None,
+                             lam=LAMBDA_START)
+    render_small = np.all(np.diag(step.cov_render) <= cfg.render_share * np.diag(step.cov))
+    enough = len(passes) >= cfg.min_batches and (np.all(rel <= cfg.precision) or render_small)
+    if enough or len(passes) >= cfg.max_batches or _over_budget(state, cfg):
+        return state.replace(passes=passes, step=step, phase="check")
+    return state.replace(passes=passes, step=step)
+
+
+SIGNIFICANT = 3.0
+"""An estimate step beyond the linear range sends the fit back to the approach only when it is longer than this many
+of its standard errors; a shorter one is the noise along a weakly determined direction, which more passes shrink."""
+
+
+def check_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> FitState:
+    """The model check of the estimate; where it fails and another distinct start is left, the next attempt."""
+    pa = _combine([p[0] for p in state.passes])
+    pb = _combine([p[1] for p in state.passes])
+    u = 0.5 * (pa.u + pb.u)
+    check = model_check(problem, state.step, u)
+    log("model check (residual / expected noise): per view " + ", ".join(
+        f"{v.name} {c:.2f}" for v, c in zip(problem.views, check.per_view))
+        + "; per channel " + ", ".join(f"{ch} {c:.2f}" for ch, c in zip("rgb", check.per_channel)))
+    attempts = state.attempts + (Attempt(state.y, state.step, u, check),)
+    nxt = state.start + 1
+    if check.worst <= cfg.chi2_max or nxt >= len(state.starts) or _over_budget(state, cfg):
+        return state.replace(attempts=attempts, phase="done")
+    log(f"  (not explained from start {state.start + 1}: {check.worst:.1f}x the noise; the next distinct start of "
+        f"the search)")
+    return state.replace(attempts=attempts, phase="approach", start=nxt, y=state.starts[nxt], u=None, w=None,
+                         passes=(), step=None, approach=0, recentres=0, trial=None, base=None, lam=LAMBDA_START)
+
+
+ROUNDS = {"search": search_round, "approach": approach_round, "estimate": estimate_round, "check": check_round}
+
+
+# ---- the solver -------------------------------------------------------------------------------------------------
+
+
+class FogFitSolver:
+    """The fit in the shape of an optimistix solver; `fit_views` runs it."""
+
+    def __init__(self, cfg: FitConfig, log: Callable = print, max_rounds: int = 60):
+        self.cfg, self.log, self.max_rounds = cfg, log, max_rounds
+
+    def init(self, problem: Problem, init: dict) -> FitState:
+        y = np.asarray(to_unconstrained(problem.names, init), np.float64)
+        return FitState(phase="search", round=0, y=y, init=dict(init), t0=time.perf_counter(),
+                        c0=time.process_time())
+
+    def step(self, problem: Problem, state: FitState) -> FitState:
+        return ROUNDS[state.phase](problem, state, self.cfg, self.log)
+
+    def terminate(self, state: FitState) -> bool:
+        return state.phase == "done" or state.round >= self.max_rounds
+
+    def postprocess(self, problem: Problem, state: FitState) -> FitResult:
+        return summarise(problem, state, self.cfg)
+
+
+def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | None = None,
+              log: Callable = print) -> FitResult:
+    """Fit `names` (starting from `init`, a value for each: a hint for the search) to all `views` jointly. Raises
+    FitError for inputs no fit can use (a target darker or brighter than anything the searched region renders);
+    a fit that runs but fails says so in the result (`success`, `messages`)."""
+    cfg = cfg or FitConfig()
+    problem = Problem(views, names)
+    for v in views:
+        if v.scene.medium is None and set(names) - {"intensity"}:
+            raise FitError(f"{v.name}: the scene has no medium to fit")
+    solver = FogFitSolver(cfg, log)
+    state = solver.init(problem, init)
+    while not solver.terminate(state):
+        state = solver.step(problem, state)
+    return solver.postprocess(problem, state)
+
+
+# ---- the result -------------------------------------------------------------------------------------------------
+
+
+def _values(names, y) -> dict:
+    return {n: float(SPECS[n].from_u(np.float32(y[i]))) for i, n in enumerate(names)}
+
+
+def _to_params(names, y, C) -> np.ndarray:
+    d = jacobian_to_params(names, y)
+    return C * np.outer(d, d)
+
+
+def _relative_se(names, y, C) -> np.ndarray:
+    se = np.sqrt(np.abs(np.diag(_to_params(names, y, C))))
+    return se / relative_scales(names, _values(names, y))
+
+
+def _at_edge(names, y) -> list[str]:
+    """Bounded parameters whose unconstrained coordinate is beyond 6 (g beyond +-0.99999, an albedo within 0.0025
+    of 0 or 1): the map is flat there and the fit cannot come back."""
+    return [n for i, n in enumerate(names)
+            if np.isfinite(SPECS[n].lo) and np.isfinite(SPECS[n].hi) and abs(float(y[i])) > 6.0]
+
+
+def _best_attempt(attempts, chi2_max) -> Attempt | None:
+    if not attempts:
+        return None
+    good = [a for a in attempts if a.check.worst <= chi2_max]
+    return good[0] if good else min(attempts, key=lambda a: a.check.worst)
+
+
+def summarise(problem: Problem, state: FitState, cfg: FitConfig) -> FitResult:
+    """The result of the best attempt: estimate, standard errors (total, the renders' and the target's parts),
+    correlation, what the views determine, and every reason not to trust it."""
+    names = problem.names
+    k = len(names)
+    wall = time.perf_counter() - state.t0
+    best = _best_attempt(state.attempts, cfg.chi2_max)
+    search = None if state.scan is None else _search_summary(names, state.scan)
+    if search is not None:
+        search["starts"] = [_values(names, y) for y in state.starts[:max(len(state.attempts), 1)]]
+    if best is None:
+        return FitResult(names, _values(names, state.y), dict(state.init), False,
+                         list(state.messages) + [f"no estimate after {state.round} rounds"],
+                         {n: {"se": float("nan"), "se_render": float("nan"), "se_target": float("nan")}
+                          for n in names}, state.round, wall, history=list(state.records), search=search)
+    y = best.y0 + best.step.delta
+    vals = _values(names, y)
+    C = _to_params(names, y, best.step.cov)
+    se = np.sqrt(np.abs(np.diag(C)))
+    se_r = np.sqrt(np.abs(np.diag(_to_params(names, y, best.step.cov_render))))
+    se_t = np.sqrt(np.abs(np.diag(_to_params(names, y, best.step.cov_target))))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = C / np.sqrt(np.outer(np.diag(C), np.diag(C)))
+    fisher = np.linalg.pinv(C) if np.all(np.isfinite(C)) else np.full((k, k), np.nan)
+    information = fisher_report(names, vals, fisher)
+    messages = list(state.messages)
+    explained = best.check.worst <= cfg.chi2_max
+    if not explained:
+        messages.append(_not_explained(problem, state, best, cfg))
+    edge = _at_edge(names, y)
+    if edge:
+        messages.append(f"parameters ran to the edge of their range: {edge}")
+    rel = se / relative_scales(names, vals)
+    loose = [n for i, n in enumerate(names) if not rel[i] <= cfg.max_se]
+    if loose:
+        messages.append(f"not pinned down by these targets at this budget (standard error above {cfg.max_se:g}"
+                        f"{'' if loose == ['g'] else ' relative'}): {loose}; more spp, a larger budget or views")
+        messages.extend(instead(names, vals, fisher, loose).values())
+    return FitResult(
+        names=names, params=vals, init=dict(state.init), success=bool(explained and not edge and not loose),
+        messages=messages,
+        uncertainty={n: {"se": float(se[i]), "se_render": float(se_r[i]), "se_target": float(se_t[i])}
+                     for i, n in enumerate(names)},
+        rounds=state.round, wall_s=wall, chi2=float(best.check.worst), correlation=corr.tolist(),
+        covariance=C.tolist(), information=information, history=list(state.records),
+        timing=[{k2: r[k2] for k2 in ("round", "phase", "wall_s", "cpu_s")} for r in state.records], search=search)
+
+
+def _search_summary(names, scan: Scan) -> dict:
+    return {"box": {n: [float(SPECS[n].from_u(np.float32(a))), float(SPECS[n].from_u(np.float32(b)))]
+                    for n, a, b in zip(names, scan.lo, scan.hi)},
+            "candidates": int(len(scan.Y)), "best": _values(names, scan.Y[0]), "best_loss": float(scan.loss[0]),
+            "points": [[*_values(names, y).values(), float(l)] for y, l in zip(scan.Y, scan.loss)]}
+
+
+def _not_explained(problem: Problem, state: FitState, best: Attempt, cfg: FitConfig) -> str:
+    box = ", ".join(f"{n} {a:.3g}..{b:.3g}" for n, (a, b) in _search_summary(problem.names, state.scan)["box"].items())
+    at = ", ".join(f"{n} {v:.4g}" for n, v in _values(problem.names, best.y0 + best.step.delta).items())
+    return (f"the model does not explain the target(s): searched {box} ({len(state.scan.Y)} candidates, local solves "
+            f"from {len(state.attempts)} distinct start(s)); the best residual is {best.check.worst:.1f}x the "
+            f"expected noise (limit {cfg.chi2_max:g}), at {at}; per view: "
+            + ", ".join(f"{v.name} {c:.1f}" for v, c in zip(problem.views, best.check.per_view))
+            + "; per channel: " + ", ".join(f"{ch} {c:.1f}" for ch, c in zip("rgb", best.check.per_channel)))

@@ -1,0 +1,254 @@
+"""The coverage study: do the fit's standard errors cover the truth as often as they say?
+
+    python -m fitting.study --out DIR [--families a,b] [--seeds N] [--foreign-seeds M] [--summary]
+
+Each family is a scene (one or two views) and the parameters to fit. For every seed the study draws a truth from the
+family's range and a start anywhere in the fit's search box (`fitting.search.search_box`: a start is only a hint),
+renders fresh targets at the truth with the "detached" estimator (`TARGET_SPP` spp, `TARGET_SIDE` px a side, seeds
+that no fit uses), and fits them in this process. The `foreign` family fits the Mitsuba 3 targets of
+`data_synthetic/foreign/manifest.json` (cases expected to pass) with `--foreign-seeds` fit seeds and random starts.
+One JSON line per fit goes to `DIR/fits.jsonl` as it finishes (an interrupted study keeps its fits and resumes);
+`--summary` (also run at the end) writes `DIR/coverage.md` and `DIR/coverage.json`: per family the fraction of
+parameters within 1 and 2 reported standard errors of the truth, with the binomial two-standard-error band of a
+coverage over that many parameters, the mean of error / se, and the walls.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+SCENES = REPO / "data_synthetic" / "scenes"
+FOREIGN = REPO / "data_synthetic" / "foreign"
+TARGET_SPP = 256
+TARGET_SIDE = 64
+FAMILIES = {
+    # name: (views, fitted parameters with their truth ranges (log-uniform for positive quantities), fixed values)
+    "spot_two_views": (("spot_fog", "spot_fog_low"), {"sigma_t": (0.2, 1.5), "g": (-0.3, 0.9)}, {}),
+    "spot_one_view": (("spot_fog",), {"sigma_t": (0.2, 1.5), "g": (-0.3, 0.9)}, {}),
+    "point_room": (("../foreign/scenes/room_point",), {"sigma_t": (0.2, 1.0), "g": (0.0, 0.8)}, {}),
+    "area_light": (("../foreign/scenes/area_floor",), {"sigma_t": (0.2, 0.8), "g": (0.0, 0.6)}, {}),
+    "glass_mirror": (("mirror_glass",), {"sigma_t": (0.3, 0.8), "g": (0.3, 0.8)}, {}),
+    "mesh": (("mesh_fog",), {"sigma_t": (0.3, 0.9), "g": (0.2, 0.8)}, {}),
+    "height_fog": (("height_fog_ground", "height_fog_above"),
+                   {"sigma_0": (0.3, 0.9), "height_scale": (0.5, 1.2), "g": (0.3, 0.7)}, {}),
+    "chromatic": (("chromatic_fit_side", "chromatic_fit_low"),
+                  {"sigma_t[r]": (0.2, 0.5), "sigma_t[g]": (0.35, 0.7), "sigma_t[b]": (0.5, 1.0), "g": (0.3, 0.7)},
+                  {}),
+    "droplet": (("droplet_fit_halo", "droplet_fit_side"), {"diameter": (6.0, 16.0), "sigma_t": (0.2, 0.5)}, {}),
+    "light_power": (("../foreign/scenes/spot_sideways", "../foreign/scenes/spot_sideways_near"),
+                    {"sigma_t": (0.25, 0.8), "g": (0.2, 0.7), "intensity": (30.0, 90.0)}, {}),
+    "albedo": (("../foreign/scenes/room_point",), {"sigma_t": (0.3, 0.8), "albedo": (0.5, 0.95), "g": (0.2, 0.7)},
+               {}),
+}
+
+
+def draw_truth(params: dict, rng) -> dict:
+    from .params import SPECS
+
+    out = {}
+    for n, (lo, hi) in params.items():
+        positive = SPECS[n].lo == 0.0 and not math.isfinite(SPECS[n].hi)
+        out[n] = float(math.exp(rng.uniform(math.log(lo), math.log(hi))) if positive else rng.uniform(lo, hi))
+    return out
+
+
+def draw_start(names, scene_values: dict, L: float, rng) -> dict:
+    """A start anywhere in the search box of the scene file's values (uniform in the unconstrained coordinates)."""
+    from .params import SPECS
+    from .search import search_box
+
+    lo, hi = search_box(names, scene_values, L)
+    u = rng.uniform(lo, hi)
+    return {n: float(SPECS[n].from_u(np.float32(u[i]))) for i, n in enumerate(names)}
+
+
+def _small(scene, side: int):
+    import equinox as eqx
+
+    import jaxfog
+
+    cam = scene.camera
+    if cam.width <= side and cam.height <= side:
+        return scene
+    cam = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov, width=side,
+                        height=side * cam.height // cam.width)
+    return eqx.tree_at(lambda s: s.camera, scene, cam)
+
+
+def family_fit(name: str, seed: int) -> dict:
+    """One fit of family `name` with study seed `seed`: fresh targets at a drawn truth, a drawn start."""
+    import jax
+
+    import jaxfog
+
+    from .fit import auto_downscale
+    from .params import apply, check_names, scene_values
+    from .problem import make_view
+    from .solver import FitConfig, fit_views
+
+    view_names, ranges, fixed = FAMILIES[name]
+    rng = np.random.default_rng([seed, sum(map(ord, name))])
+    truth = draw_truth(ranges, rng)
+    names = check_names(list(ranges))
+    views = []
+    for i, vn in enumerate(view_names):
+        scene = _small(jaxfog.load_scene(str(SCENES / f"{vn}.json")).scene, TARGET_SIDE)
+        key = jax.random.key(900_000 + 1000 * seed + 17 * i + sum(map(ord, name)))
+        target = np.asarray(jaxfog.render(apply(scene, {**fixed, **truth}), key, TARGET_SPP, estimator="detached"))
+        f = auto_downscale(scene.camera.width, scene.camera.height)
+        views.append(make_view(scene, target, f"{name}/{Path(vn).name}", f, TARGET_SPP))
+    from .search import scene_size
+    from .problem import Problem
+
+    start = draw_start(names, scene_values(views[0].scene), scene_size(Problem(views, names)), rng)
+    return _run(name, seed, views, names, start, truth, FitConfig(seed=seed))
+
+
+def foreign_fit(case: dict, seed: int) -> dict:
+    """One fit of a foreign (Mitsuba) case with fit seed `seed` and a drawn start."""
+    import jaxfog
+
+    from .fit import auto_downscale
+    from .params import check_names, scene_values
+    from .problem import Problem, make_view
+    from .search import scene_size
+    from .solver import FitConfig
+
+    views = []
+    for v in case["views"]:
+        scene = jaxfog.load_scene(str(REPO / v["scene"])).scene
+        target, _ = jaxfog.read_exr(str(REPO / v["target"]))
+        views.append(make_view(scene, target, f"foreign/{Path(v['target']).name}",
+                               auto_downscale(scene.camera.width, scene.camera.height)))
+    names = check_names(case["fit"])
+    rng = np.random.default_rng([seed, sum(map(ord, case["name"]))])
+    start = draw_start(names, scene_values(views[0].scene), scene_size(Problem(views, names)), rng)
+    truth = {n: case["truth"][n] for n in names if n in case["truth"]}
+    return _run("foreign", seed, views, names, start, truth, FitConfig(seed=seed), case=case["name"])
+
+
+def _run(family, seed, views, names, start, truth, cfg, case=None) -> dict:
+    from .solver import fit_views
+
+    t0 = time.perf_counter()
+    try:
+        r = fit_views(views, names, start, cfg, log=lambda *a: None)
+    except Exception as e:  # noqa: BLE001 - a refused or crashed fit is a result of the study
+        return {"family": family, "case": case, "seed": seed, "truth": truth, "start": start, "error": repr(e),
+                "wall_s": time.perf_counter() - t0}
+    rows = {n: {"truth": truth[n], "estimate": r.params[n], **r.uncertainty[n]} for n in names if n in truth}
+    return {"family": family, "case": case, "seed": seed, "start": start, "params": rows, "success": r.success,
+            "messages": r.messages, "chi2": r.chi2, "rounds": r.rounds, "wall_s": time.perf_counter() - t0}
+
+
+def summarise(lines: list[dict]) -> dict:
+    """Coverage per family and overall, for the reported se and for the noise model's (target and renders)."""
+    fams: dict[str, list] = {}
+    for d in lines:
+        for n, p in (d.get("params") or {}).items():
+            z = (p["estimate"] - p["truth"]) / p["se"] if p["se"] and p["se"] > 0 else float("inf")
+            se_m = math.hypot(p["se_target"], p["se_render"])
+            zm = (p["estimate"] - p["truth"]) / se_m if se_m > 0 else float("inf")
+            fams.setdefault(d["family"], []).append((z, zm, d["wall_s"], bool(d.get("success"))))
+    out = {}
+    for fam, rows in sorted(fams.items()) + [("all", [r for v in fams.values() for r in v])]:
+        z = np.asarray([r[0] for r in rows])
+        zm = np.asarray([r[1] for r in rows])
+        m = len(z)
+        out[fam] = {
+            "parameters": m,
+            "within_1se": float(np.mean(np.abs(z) <= 1)), "within_2se": float(np.mean(np.abs(z) <= 2)),
+            "band_1se": 2 * math.sqrt(0.6827 * 0.3173 / m), "band_2se": 2 * math.sqrt(0.9545 * 0.0455 / m),
+            "mean_z": float(np.mean(z[np.isfinite(z)])) if np.any(np.isfinite(z)) else float("nan"),
+            "model_within_1se": float(np.mean(np.abs(zm) <= 1)), "model_within_2se": float(np.mean(np.abs(zm) <= 2)),
+            "success": float(np.mean([r[3] for r in rows])),
+            "wall_median_s": float(np.median([r[2] for r in rows])), "wall_max_s": float(np.max([r[2] for r in rows])),
+        }
+    errors = [d for d in lines if "error" in d]
+    return {"families": out, "fits": len(lines), "errors": [f"{d['family']} seed {d['seed']}: {d['error']}"
+                                                           for d in errors]}
+
+
+def write_summary(outdir: Path) -> dict:
+    lines = [json.loads(x) for x in (outdir / "fits.jsonl").read_text().splitlines() if x.strip()]
+    s = summarise(lines)
+    rows = ["| family | parameters | within 1 se (68.3% ± band) | within 2 se (95.4% ± band) | mean error / se | "
+            "noise model only: within 1 / 2 se | fits accepted | wall median / max (s) |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for fam, c in s["families"].items():
+        rows.append(f"| {fam} | {c['parameters']} | {100 * c['within_1se']:.0f}% (± {100 * c['band_1se']:.0f}) | "
+                    f"{100 * c['within_2se']:.0f}% (± {100 * c['band_2se']:.0f}) | {c['mean_z']:+.2f} | "
+                    f"{100 * c['model_within_1se']:.0f}% / {100 * c['model_within_2se']:.0f}% | "
+                    f"{100 * c['success']:.0f}% | {c['wall_median_s']:.1f} / {c['wall_max_s']:.1f} |")
+    text = (f"# Coverage study\n\n{s['fits']} fits (`python -m fitting.study`); a row per family, parameters "
+            f"pooled.\n\n" + "\n".join(rows) + "\n")
+    if s["errors"]:
+        text += "\nRefused or crashed fits:\n\n" + "\n".join(f"- {e}" for e in s["errors"]) + "\n"
+    (outdir / "coverage.md").write_text(text)
+    (outdir / "coverage.json").write_text(json.dumps(s, indent=1))
+    print(text)
+    return s
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m fitting.study", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", required=True, help="output folder (fits.jsonl, coverage.md, coverage.json)")
+    ap.add_argument("--families", default=",".join([*FAMILIES, "foreign"]),
+                    help="comma-separated families (default: all, and foreign)")
+    ap.add_argument("--seeds", type=int, default=12, help="fits per family (default 12)")
+    ap.add_argument("--foreign-seeds", type=int, default=3, help="fit seeds per foreign case (default 3)")
+    ap.add_argument("--summary", action="store_true", help="only summarise DIR/fits.jsonl")
+    args = ap.parse_args(argv)
+    outdir = Path(args.out)
+    outdir.mkdir(parents=True, exist_ok=True)
+    if args.summary:
+        write_summary(outdir)
+        return 0
+    from jaxfog._cache import use_compilation_cache
+    from jaxfog._devices import use_cpu_cores
+
+    use_cpu_cores()
+    use_compilation_cache()
+    fams = [f for f in args.families.split(",") if f]
+    unknown = [f for f in fams if f not in FAMILIES and f != "foreign"]
+    if unknown:
+        print(f"error: unknown families {unknown}; valid: {', '.join([*FAMILIES, 'foreign'])}", file=sys.stderr)
+        return 2
+    path = outdir / "fits.jsonl"
+    done = set()
+    if path.exists():
+        for x in path.read_text().splitlines():
+            if x.strip():
+                d = json.loads(x)
+                done.add((d["family"], d.get("case"), d["seed"]))
+    jobs = [(f, None, s) for s in range(args.seeds) for f in fams if f != "foreign"]
+    if "foreign" in fams:
+        cases = [c for c in json.loads((FOREIGN / "manifest.json").read_text())["cases"] if c["expect"] == "pass"]
+        jobs += [("foreign", c["name"], s) for s in range(args.foreign_seeds) for c in cases]
+        by_name = {c["name"]: c for c in cases}
+    for fam, case, seed in jobs:
+        if (fam, case, seed) in done:
+            continue
+        d = foreign_fit(by_name[case], seed) if fam == "foreign" else family_fit(fam, seed)
+        with open(path, "a") as f:
+            f.write(json.dumps(d) + "\n")
+        ok = "error" not in d
+        print(f"{fam} {case or ''} seed {seed}: " + (" ".join(
+            f"{n} {p['estimate']:.4g} (true {p['truth']:.4g}, {(p['estimate'] - p['truth']) / p['se']:+.1f} se)"
+            for n, p in d["params"].items()) + f" {'ok' if d['success'] else 'FAILED'} {d['wall_s']:.1f} s"
+            if ok else d["error"]), flush=True)
+    write_summary(outdir)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
