@@ -10,7 +10,7 @@ Cases (both cores as JAX devices, `jaxfog.use_cpu_cores()`, as the command-line 
 - `unbounded`: the same scene with `max_depth = -1` (paths of any length, Russian roulette), 8 spp.
 - `jvp`: the fit's program: `jax.jacfwd` over (sigma_t, g) of `render(..., estimator="proposal", proposal=<the
   medium at the same values>, variance=True)` of spot_fog downscaled to 8 x 8 px (the camera's fov kept), 2048 spp
-  (the shape of `fitting.core.Problem.value_and_jacobian`).
+  (the shape of `fitting.problem.Problem.pass_`).
 - `jvp256`: the same at 256 spp (the fit's default spp: one call per view and Levenberg-Marquardt step).
 - `call`: the same at 2 spp (128 paths): the fixed cost of one `render` call under `jax.jacfwd` (its figures are
   per path too: multiply by 128 for the time per call).
@@ -98,7 +98,7 @@ def _plain_case(jf, case: str):
 
 def _fit_render(jf, case: str):
     """`(f, y0, n_paths)` of a fit-render case: `f(y)` is the "proposal" render with its variance of spot_fog at
-    8 x 8 px as a function of `y = (sigma_t, g)` (as `fitting.core.Problem.value_and_jacobian`), `y0` the scene's."""
+    8 x 8 px as a function of `y = (sigma_t, g)` (as `fitting.problem.Problem.pass_`), `y0` the scene's."""
     import jax
     import jax.numpy as jnp
 

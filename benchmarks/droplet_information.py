@@ -7,7 +7,7 @@ For each view of the `droplet_8um` targets (and the narrow halo view at a few fi
 (`jax.jacfwd` of `jaxfog.render`, the "proposal" estimator with the truth as its fixed reference: the fit's own
 derivative), averaged over `--keys` keys of `--spp` samples each, with a central finite difference in d (same
 estimator, reference and key, d +- 0.25 µm) as a check; and each pixel's per-sample variance (the render's
-`variance=True`, pooled over the keys). Then, pooled to each fit resolution (box pooling as `fitting.core.pool`; a
+`variance=True`, pooled over the keys). Then, pooled to each fit resolution (box pooling as `fitting.problem.pool`; a
 fit pixel's per-sample variance is the mean of its target pixels' plus the spread of their means),
 the Fisher information of one channel (the fog is grey: the three channels carry the same noise)
 

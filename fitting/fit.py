@@ -84,14 +84,6 @@ def preview_downscale(width: int, height: int, fit_downscale: int) -> int:
     return fit_downscale
 
 
-def check_target_not_black(view) -> None:
-    """Refuse a black target (every pixel 0) before any work: nothing to fit. A target of another brightness is
-    judged after the global search, against what the searched region renders (`fitting.search.check_brightness`)."""
-    if not float(np.mean(view.target)) > 0.0:
-        raise FitError(f"{view.name}: target is black (every pixel 0): nothing to fit; a target rendered with the "
-                       f"light off, or the wrong file?")
-
-
 def json_safe(x):
     """`x` with every non-finite float replaced by None (JSON has no NaN or Infinity)."""
     if isinstance(x, float):
@@ -154,9 +146,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fit at 1/F of the target resolution (box-pooled target; default: the largest F that divides "
                         "the image size and leaves at least 8 px a side: few pixels with many samples each keep "
                         "the Jacobian's noise low, docs/results/fit_sweep)")
-    p.add_argument("--budget", type=float, default=None, metavar="SECONDS",
-                   help="time budget of the fit itself: the estimate stops with the passes it has when it is spent "
-                        "(default: none; the fit stops when its standard errors reach 1%% or stop shrinking)")
+    p.add_argument("--budget", type=float, default=FitConfig.time_budget, metavar="SECONDS",
+                   help="time budget of each local solve: its estimate stops with the passes it has when it is spent "
+                        "(default %(default)s; a solve also stops when its standard errors reach 1%% or stop "
+                        "shrinking)")
     p.add_argument("--candidates", nargs="+", default=[], metavar="SCENE.json",
                    help="after the fit, rank these views (scene files of the same medium: other cameras or lights) by "
                         "how much a target of each would shrink the uncertainty")
@@ -193,7 +186,7 @@ def _run(args) -> int:
     init_given = parse_assignments(args.init)
     if args.spp < 1:
         raise FitError(f"--spp must be >= 1, got {args.spp}")
-    if args.budget is not None and not args.budget > 0:
+    if not args.budget > 0:
         raise FitError(f"--budget must be > 0 seconds, got {args.budget}")
     not_fitted = sorted(set(init_given) - set(names))
     if not_fitted:
@@ -237,8 +230,6 @@ def _run(args) -> int:
     for n in names:
         if init[n] is None:
             raise FitError(f"cannot fit {n}: the scene has no such value")
-    for v in views:
-        check_target_not_black(v)
     cfg = FitConfig(spp=args.spp, seed=args.seed, time_budget=args.budget)
     print(f"fitting {', '.join(names)} to {len(views)} target(s) at "
           f"{views[0].scene.camera.width}x{views[0].scene.camera.height} px, {args.spp} spp")
@@ -309,7 +300,7 @@ program shape: 1,024 spp at the default 256)."""
 def rank_candidates(result, views, candidates, target_spp: int, spp: int) -> list[dict]:
     """Rank the candidate views by the worst-determined standard error with a target of each (at `target_spp` x
     its downscale^2 samples per fit pixel) added to the fitted views' (`views`); prints the ranking. The
-    information of every view is `fitting.core.candidate_fisher` at the estimate, the targets' noise alone."""
+    information of every view is `fitting.problem.candidate_fisher` at the estimate, the targets' noise alone."""
     import jax
 
     from .problem import candidate_fisher

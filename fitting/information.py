@@ -7,7 +7,7 @@ in fractions of its value, a bounded one (g, albedo, a lobe weight) and an unbou
 units. In those units the eigenvector `v_k` of `F` with eigenvalue `lambda_k` is a combination of the parameters that
 the views determine to a standard error of `1 / sqrt(lambda_k)`: large eigenvalues are combinations the images pin,
 small ones directions along which the images barely change (a ridge). Everything here is numpy on a given `F`;
-`fitting.core` builds `F` at the end of a fit.
+`fitting.solver` builds `F` at the end of a fit (the inverse of the estimate's covariance).
 """
 
 from __future__ import annotations

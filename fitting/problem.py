@@ -109,6 +109,9 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     if np.any(target < 0):
         raise FitError(f"{name}: target has {int(np.sum(target < 0))} negative values (smallest "
                        f"{float(target.min()):.4g}); expected linear radiance >= 0")
+    if not float(np.mean(target)) > 0.0:
+        raise FitError(f"{name}: target is black (every pixel 0): nothing to fit; a target rendered with the light "
+                       f"off, or the wrong file?")
     if downscale < 1 or cam.width % downscale or cam.height % downscale:
         raise FitError(f"downscale {downscale} must be >= 1 and divide the image size {cam.width}x{cam.height}")
     small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov,
@@ -141,14 +144,18 @@ class Pass(NamedTuple):
 class Problem:
     """All views' renders as functions of the unconstrained parameters `y` (`fitting.params`), in scaled units.
 
-    `scales[v]`: the mean of view v's target (floored at 1e-8); `n`: pixel values of all views; `pixel_of[i]`: the
+    `scales[v]`: the mean of view v's target (a black target is refused); `n`: pixel values of all views; `pixel_of[i]`: the
     pixel (over all views) that element i belongs to, for per-pixel sums over the three channels."""
 
     def __init__(self, views: list[View], names: list[str]):
         if not views:
             raise FitError("no targets given")
+        for v in views:
+            if not float(np.mean(v.target)) > 0.0:
+                raise FitError(f"{v.name}: target is black (every pixel 0): nothing to fit; a target rendered with "
+                               f"the light off, or the wrong file?")
         self.views, self.names = views, list(names)
-        self.scales = [float(max(np.mean(v.target), 1e-8)) for v in views]
+        self.scales = [float(np.mean(v.target)) for v in views]
         self.n = sum(v.target.size for v in views)
         self.t = np.concatenate([(np.asarray(v.target, np.float64) / s).ravel()
                                  for v, s in zip(views, self.scales)]) / math.sqrt(self.n)

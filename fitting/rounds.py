@@ -26,7 +26,10 @@ class Step(NamedTuple):
     step's covariance from the residuals themselves (`robust_covariance`); `cov_render` the part of it the renders'
     noise explains (`model_covariance` with the renders' own variances), `cov_target` the part the target's noise
     model explains; `r` (n,) the residual after the step (linearised); `J` (n, k) the halves' mean Jacobian;
-    `var_render` (n,) the render's variance of each element of the mean residual."""
+    `var_render` (n,) the render's variance of each element of the mean residual; `quality` the smallest eigenvalue
+    of the two-key normal matrix relative to the halves' own (`(Ja^T W Ja + Jb^T W Jb) / 2`, which also carries
+    the Jacobians' noise): 1 for noise-free Jacobians, near 0 or below where their noise is as large as their
+    signal along some direction (the step is then solved with the halves' own matrix: shorter, never wild)."""
 
     delta: np.ndarray
     A: np.ndarray
@@ -36,6 +39,7 @@ class Step(NamedTuple):
     r: np.ndarray
     J: np.ndarray
     var_render: np.ndarray
+    quality: float = 1.0
 
 
 def spd_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
@@ -111,30 +115,40 @@ def robust_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, r: np.nda
     return A_inv @ B @ A_inv
 
 
-def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixel_of: np.ndarray) -> Step | None:
+def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixel_of: np.ndarray,
+                 quality_min: float = 0.25) -> Step | None:
     """One Gauss-Newton step from two independent halves: `delta = -A^-1 (Ja^T W eb + Jb^T W ea) / 2`,
     `A = sym(Ja^T W Jb)`. No Jacobian multiplies the residual from its own samples (a Jacobian and a residual from
-    the same paths are correlated, which biases the fixed point), and `A` carries no `Var[J]`. None where `A` is not
-    positive definite even with each half's own normal matrix (a parameter without effect on the images)."""
-    A = normal_matrix(pa.J, pb.J, w)
+    the same paths are correlated, which biases the fixed point), and `A` carries no `Var[J]`. Where the Jacobians'
+    noise is too large for `A` (`Step.quality` below `quality_min`), the halves' own normal matrix instead. None
+    where that is singular too (a parameter without effect on the images)."""
     W = w * w
     g = 0.5 * (pa.J.T @ (W * pb.e) + pb.J.T @ (W * pa.e))
+    A2 = normal_matrix(pa.J, pb.J, w)
+    A1 = 0.5 * (normal_matrix(pa.J, pa.J, w) + normal_matrix(pb.J, pb.J, w))
+    quality = _relative_min_eig(A2, A1)
+    A = A2 if quality >= quality_min else A1
     delta = spd_solve(A, -g)
     if delta is None:
-        # the halves' Jacobians are too noisy to agree: each half's own normal matrix (it carries Var[J], so the
-        # step is shorter than Gauss-Newton's) with a ridge of 1e-9 of its trace where a parameter has no effect
-        A = 0.5 * (normal_matrix(pa.J, pa.J, w) + normal_matrix(pb.J, pb.J, w))
-        A = A + np.eye(len(A)) * 1e-9 * max(float(np.trace(A)), 1e-300)
-        delta = spd_solve(A, -g)
-        if delta is None:
-            return None
+        return None
     A_inv = np.linalg.inv(A)
     J = 0.5 * (pa.J + pb.J)
     r = 0.5 * (pa.e + pb.e) + J @ delta
     var_render = 0.5 * (pa.u + pb.u) / (pa.spp + pb.spp)
     cov = robust_covariance(A_inv, J, w, r, pixel_of)
     return Step(delta, A, cov, model_covariance(A_inv, J, w, var_render, pixel_of),
-                model_covariance(A_inv, J, w, var_target, pixel_of), r, J, var_render)
+                model_covariance(A_inv, J, w, var_target, pixel_of), r, J, var_render, quality)
+
+
+def _relative_min_eig(A2: np.ndarray, A1: np.ndarray) -> float:
+    """The smallest generalised eigenvalue of `A2` relative to the positive definite `A1` (-inf where A1 is not)."""
+    try:
+        L = np.linalg.cholesky(0.5 * (A1 + A1.T))
+    except np.linalg.LinAlgError:
+        return float("-inf")
+    Li = np.linalg.inv(L)
+    M = Li @ (0.5 * (A2 + A2.T)) @ Li.T
+    return float(np.min(np.linalg.eigvalsh(0.5 * (M + M.T))))
 
 
 def damped_step(pa: Pass, pb: Pass, w: np.ndarray, lam: float) -> np.ndarray | None:

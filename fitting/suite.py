@@ -16,7 +16,7 @@ when the fit exits 1 with success false and a message saying the model does not 
 
 `--agreement`: before the fits, renders each target's scene at its truth with jaxfog (`--agreement-spp`, per-pixel
 variance from the render) and compares the image mean per channel with the Mitsuba target's (the target's own
-noise from `fitting.core.block_noise`): the relative difference and its z-score, so a fit's miss can be told from
+noise from `fitting.problem.block_noise`): the relative difference and its z-score, so a fit's miss can be told from
 the two renderers disagreeing at the truth.
 """
 
@@ -158,7 +158,7 @@ def agreement(manifest: dict, cases: list[dict], spp: int = 256, seed: int = 7) 
     import jaxfog
     from jaxfog._scene_io import scene_from_dict
 
-    from .core import block_noise
+    from .problem import block_noise
 
     truth_scene = _make_foreign().truth_scene
 

@@ -177,13 +177,11 @@ FIT_ROWS = [
     ("--out is the scene", ["{scene}", "{good}", "--out", "{scene}"], ["would overwrite the input", "scene.json"]),
     ("--out is a directory", ["{scene}", "{good}", "--out", "{dir}"], ["d.json is a directory"]),
     ("spp beyond the limit", ["{scene}", "{good}", "--spp", "100000000"],
-     [f"--spp x --value-spp-factor 3200000000 exceeds the limit {MAX_SPP}", "JAXFOG_NO_LIMITS=1"]),
+     [f"--spp x 8 (an estimate pass) 800000000 exceeds the limit {MAX_SPP}", "JAXFOG_NO_LIMITS=1"]),
     ("all-zero target", ["{scene}", "{zero}"], ["zero.exr: target is black (every pixel 0)"]),
     ("negative target", ["{scene}", "{negative}"], ["negative.exr: target has 768 negative values", ">= 0"]),
     ("non-finite target", ["{scene}", "{nan}"], ["nan.exr: target: 48 of 768 values are not finite (48 NaN"]),
     ("PNG renamed .exr", ["{scene}", "{png}"], ["png.exr: the file is png, not OpenEXR"]),
-    ("target of another brightness", ["{scene}", "{bright}"],
-     ["bright.exr: target mean 50 is", "plausible range [1/30, 30]x"]),
 ]
 
 
@@ -199,6 +197,25 @@ def test_fit_cli_refuses(argv, parts, fit_files, capsys):
     for part in parts:
         assert part in err, err
     assert not (fit_files["tmp"] / "r.json").exists()
+
+
+def test_fit_cli_refuses_a_target_brighter_than_the_searched_region_renders(fit_files, capsys, monkeypatch):
+    """A target 1000x too bright: refused after the global search (which renders the whole searched box) and before
+    any local solve, with the box in the message; nothing written."""
+    import fitting.solver
+    from fitting.fit import main as fit_main
+
+    def fail(*args, **kwargs):
+        pytest.fail("a local solve ran although the search should have refused the target")
+
+    monkeypatch.setattr(fitting.solver, "approach_round", fail)
+    monkeypatch.setitem(fitting.solver.ROUNDS, "approach", fail)
+    out = fit_files["tmp"] / "r.json"
+    assert fit_main([str(fit_files["scene"]), str(fit_files["bright"]), "--spp", "16", "--out", str(out)]) == 2
+    err = _one_line_error(capsys)
+    assert "bright.exr: the target is" in err and "as bright as the renders of the whole searched region" in err
+    assert "sigma_t" in err
+    assert not out.exists()
 
 
 def test_fit_result_json_has_no_nan_tokens(tmp_path):

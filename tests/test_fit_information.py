@@ -70,7 +70,7 @@ def test_combination_text():
 
 
 def test_block_noise_estimates_the_pooled_pixel_variance():
-    from fitting.core import block_noise, pool
+    from fitting.problem import block_noise, pool
 
     rng = np.random.default_rng(1)
     H = W = 64
@@ -82,21 +82,6 @@ def test_block_noise_estimates_the_pooled_pixel_variance():
     v = block_noise(noisy, 8)
     assert v.shape == pool(noisy, 8).shape
     np.testing.assert_allclose(np.mean(v), sd ** 2 / 64, rtol=0.05)  # a pooled pixel: v / f^2
-
-
-def test_mahalanobis_and_chi2_quantile():
-    from fitting.core import _chi2_quantile, _mahalanobis, _rounds_cov
-
-    assert abs(_chi2_quantile(1, 0.95) - 3.841) < 1e-3 and abs(_chi2_quantile(2, 0.95) - 5.991) < 1e-3
-    assert abs(_chi2_quantile(3, 0.95) / 7.8147 - 1) < 0.006 and abs(_chi2_quantile(10, 0.95) / 18.307 - 1) < 0.006
-    C = np.diag([4.0, 1.0])
-    assert abs(_mahalanobis([2.0, 0.0], C) - 1.0) < 1e-12
-    assert _mahalanobis([1.0, 0.0], np.full((2, 2), np.inf)) == np.inf
-    # rounds scattered 3x wider than C_R says: the mean's covariance follows the spread, / m
-    rng = np.random.default_rng(2)
-    Y = rng.normal(scale=3.0, size=(400, 2))
-    Cm = _rounds_cov(Y, np.eye(2))
-    np.testing.assert_allclose(np.diag(Cm) * 400, 9.0, rtol=0.2)
 
 
 def test_compilation_cache_dir(monkeypatch, tmp_path):

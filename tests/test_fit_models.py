@@ -22,7 +22,8 @@ import pytest
 
 import jaxfog
 from jaxfog._scene_io import scene_from_dict
-from fitting.core import FitConfig, fit_views, make_view
+from fitting.problem import make_view
+from fitting.solver import FitConfig, fit_views
 from fitting.params import apply
 
 # tests/test_fit.py's small backlit scene (a point light in the fog in front of the camera and a lit floor), 16 x 16
@@ -53,8 +54,8 @@ def target():
 
 
 def _fit(target, names, init):
-    view = make_view(_scene(), target, "tiny_rgb", downscale=1, target_spp=TARGET_SPP)
-    cfg = FitConfig(spp=FIT_SPP, seed=0, max_rounds=10, repeats=2, burn_in=2, value_spp_factor=8)
+    view = make_view(_scene(), target, "tiny_rgb", downscale=2, target_spp=TARGET_SPP)
+    cfg = FitConfig(spp=FIT_SPP, seed=0)
     return fit_views([view], names, init, cfg, log=lambda *_: None)
 
 

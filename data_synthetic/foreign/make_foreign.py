@@ -12,7 +12,7 @@ Header keys: `jaxfog:truth` (JSON, read by `fitting.fit.true_values`), `jaxfog:s
 `renderer` (`mitsuba 3.9.1 scalar_rgb`), `mitsuba:spp`, `mitsuba:seed`, `mitsuba:max_depth`. There is deliberately
 no `jaxfog:spp`: the fit would take the target's noise as that many samples with jaxfog's own per-sample variance,
 and Mitsuba's estimator (other distance sampling, other MIS, no equiangular sampling) has another variance per
-sample. Without it the fit estimates the target's noise from the image itself (`fitting.core.block_noise`), which
+sample. Without it the fit estimates the target's noise from the image itself (`fitting.problem.block_noise`), which
 errs on the side of more noise at edges.
 
 Two cases must fail: a chromatic haze fitted with the grey model, and a target of another layout fitted with the

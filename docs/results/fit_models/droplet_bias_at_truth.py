@@ -3,7 +3,7 @@
 check's calibration?), and proposal vs detached vs the target (z-tests)."""
 import time, sys, jax, numpy as np, jaxfog
 jaxfog.use_cpu_cores()
-from fitting.core import make_view
+from fitting.problem import make_view
 from fitting.params import apply
 TRUTH={"diameter":8.0,"sigma_t":0.3,"albedo":0.9}
 name=sys.argv[1] if len(sys.argv)>1 else "droplet_fit_halo"

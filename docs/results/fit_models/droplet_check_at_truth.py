@@ -1,11 +1,11 @@
 # python docs/results/fit_models/droplet_check_at_truth.py VIEW D N  (repository root, PYTHONPATH=.): e.g. droplet_fit_halo 8 8
 """The fit's model check on a droplet view (fitted at 8 x 8), with N pairs of 64-spp renders at diameter D (the
 truth's other values): the former ratio (two renders' half-difference scaled by the Gaussian factor) and the
-reference-residual ratio that fitting/core.py uses now (two renders' mean minus a render at the target's samples per
+reference-residual ratio that fitting/core.py used then (two renders' mean minus a render at the target's samples per
 fit pixel). For a model that explains the target both should read ~1."""
 import time, sys, jax, numpy as np, jaxfog
 jaxfog.use_cpu_cores()
-from fitting.core import make_view
+from fitting.problem import make_view
 from fitting.params import apply
 TRUTH={"diameter":8.0,"sigma_t":0.3,"albedo":0.9}
 name=sys.argv[1]; dval=float(sys.argv[2]); n=int(sys.argv[3])

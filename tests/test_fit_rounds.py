@@ -1,0 +1,216 @@
+"""The fit's round functions on their own (fitting/rounds.py, fitting/search.py, fitting/solver.py), on synthetic
+linear problems whose answer is known: no renders. Statistical checks state their tolerance from the estimator's
+standard error and fix their seeds."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fitting.params import FitError, SPECS
+from fitting.problem import Pass
+from fitting.rounds import (chi2_quantile, damped_step, gauss_newton, mahalanobis, model_check, model_covariance,
+                            robust_covariance, trust_region, two_key_loss, weights)
+from fitting.search import Scan, distinct_starts, halton, param_range, profile_linear, search_box
+from fitting.solver import FitConfig
+
+P, K = 200, 2                      # pixels, parameters
+N = 3 * P                          # elements (three channels a pixel)
+PIXEL_OF = np.arange(N) // 3
+
+
+class _FakeProblem:
+    """What the round functions read of a Problem: element count, the pixel map, views for `split`."""
+
+    def __init__(self, n_views=1):
+        self.n = N
+        self.pixel_of = PIXEL_OF
+        side = int(math.sqrt(P // n_views))
+        self.views = [type("V", (), {"target": np.zeros((side, P // n_views // side, 3)), "name": f"v{i}",
+                                     "target_spp": None, "target_var": None, "downscale": 1, "scale": 1.0})()
+                      for i in range(n_views)]
+        self.scales = [1.0] * n_views
+
+    def split(self, x):
+        out, at = [], 0
+        for v in self.views:
+            out.append(np.asarray(x[at:at + v.target.size]).reshape(v.target.shape))
+            at += v.target.size
+        return out
+
+    def target_variance(self, u):
+        return np.zeros(self.n)
+
+
+def _linear_problem(rng, sd=0.05, channel_corr=True):
+    """e(y) = J (y - y_star) + noise: a pass pair at y = 0 with independent noise (fully correlated over a pixel's
+    channels when `channel_corr`), Jacobians with a little noise of their own."""
+    J = rng.normal(size=(N, K)) / math.sqrt(N)
+    y_star = np.array([0.3, -0.2])
+
+    def half():
+        z = rng.normal(size=P)
+        noise = np.repeat(z, 3) if channel_corr else rng.normal(size=N)
+        e = -J @ y_star + sd * noise / math.sqrt(N)
+        Jn = J + 0.01 * rng.normal(size=J.shape) / math.sqrt(N)
+        return Pass(e, np.full(N, (sd / math.sqrt(N)) ** 2 * 64), Jn, 64)
+
+    return J, y_star, half
+
+
+def test_gauss_newton_recovers_a_linear_problem_and_its_covariance_is_honest():
+    """Over 400 independent pass pairs: the step's mean is y_star within 4 standard errors of the mean, and its
+    spread matches both covariances (robust and the noise model's) within 15% in variance (the standard error of a
+    variance over 400 draws is ~7%)."""
+    rng = np.random.default_rng(0)
+    J, y_star, half = _linear_problem(rng)
+    w = np.ones(N)
+    steps, covs, model = [], [], []
+    for _ in range(400):
+        pa, pb = half(), half()
+        st = gauss_newton(pa, pb, w, np.zeros(N), PIXEL_OF)
+        steps.append(st.delta)
+        covs.append(st.cov)
+        model.append(st.cov_render)
+    steps = np.asarray(steps)
+    emp = np.cov(steps.T)
+    sem = np.sqrt(np.diag(emp) / len(steps))
+    assert np.all(np.abs(steps.mean(axis=0) - y_star) <= 4 * sem)
+    np.testing.assert_allclose(np.diag(np.mean(covs, axis=0)), np.diag(emp), rtol=0.15)
+    np.testing.assert_allclose(np.diag(np.mean(model, axis=0)), np.diag(emp), rtol=0.15)
+
+
+def test_model_covariance_counts_a_pixels_channels_as_one_draw():
+    """Channels fully correlated within a pixel: the sandwich with `pixel_of` is 3x the one that treats the 3N
+    elements as independent (here: each pixel its own cluster of one element)."""
+    rng = np.random.default_rng(1)
+    J = np.repeat(rng.normal(size=(P, K)), 3, axis=0)
+    A_inv = np.linalg.inv(J.T @ J)
+    var = np.full(N, 0.01)
+    clustered = model_covariance(A_inv, J, np.ones(N), var, PIXEL_OF)
+    independent = model_covariance(A_inv, J, np.ones(N), var, np.arange(N))
+    np.testing.assert_allclose(clustered, 3.0 * independent, rtol=1e-10)
+
+
+def test_robust_covariance_follows_the_residuals_it_is_given():
+    rng = np.random.default_rng(2)
+    J = rng.normal(size=(N, K))
+    A_inv = np.linalg.inv(J.T @ J)
+    r = rng.normal(size=N)
+    C1 = robust_covariance(A_inv, J, np.ones(N), r, PIXEL_OF)
+    C2 = robust_covariance(A_inv, J, np.ones(N), 2.0 * r, PIXEL_OF)
+    np.testing.assert_allclose(C2, 4.0 * C1, rtol=1e-12)
+    assert np.allclose(C1, C1.T) and np.all(np.linalg.eigvalsh(C1) > 0)
+
+
+def test_damped_step_is_gauss_newton_without_damping_and_shrinks_with_it():
+    rng = np.random.default_rng(3)
+    _, _, half = _linear_problem(rng)
+    pa, pb = half(), half()
+    w = np.ones(N)
+    gn = gauss_newton(pa, pb, w, np.zeros(N), PIXEL_OF).delta
+    np.testing.assert_allclose(damped_step(pa, pb, w, 0.0), gn, rtol=1e-8)
+    lengths = [np.linalg.norm(damped_step(pa, pb, w, lam)) for lam in (0.0, 0.1, 1.0, 10.0, 1e3)]
+    assert all(a > b for a, b in zip(lengths, lengths[1:]))
+    # a parameter without effect: zero Jacobian column -> still a finite step, zero in that coordinate
+    pz = Pass(pa.e, pa.u, np.column_stack([pa.J[:, 0], 0 * pa.J[:, 1]]), pa.spp)
+    qz = Pass(pb.e, pb.u, np.column_stack([pb.J[:, 0], 0 * pb.J[:, 1]]), pb.spp)
+    d = damped_step(pz, qz, w, 0.01)
+    assert d is not None and np.all(np.isfinite(d)) and abs(d[1]) < 1e-6
+
+
+def test_two_key_loss_is_unbiased_for_the_squared_mean():
+    """E[sum(ea eb)] = sum(mu^2) for independent halves; the mean over 2,000 pairs within 4 of its standard errors."""
+    rng = np.random.default_rng(4)
+    mu = rng.normal(size=N) * 0.1
+    vals = [two_key_loss(Pass(mu + rng.normal(size=N), None, None, 1), Pass(mu + rng.normal(size=N), None, None, 1))[0]
+            for _ in range(2000)]
+    assert abs(np.mean(vals) - np.sum(mu ** 2)) <= 4 * np.std(vals) / math.sqrt(len(vals))
+
+
+def test_weights_are_equal_without_variances_and_floored_with_them():
+    prob = _FakeProblem()
+    np.testing.assert_array_equal(weights(prob, None, 0.5, 1), np.ones(N))
+    u = np.ones(N)
+    u[::7] = 1e-8                     # a pixel whose samples showed no spread
+    w = weights(prob, u, 1.0, 0)
+    assert np.mean(w ** 2) == pytest.approx(1.0)
+    assert w.max() / np.median(w) <= (1 / 0.1) ** 0.25 + 1e-9   # floored at 0.1 of the median variance
+    assert np.all(np.isfinite(weights(prob, np.full(N, np.nan), 0.5, 1)))
+
+
+def test_model_check_reads_one_for_noise_and_more_for_a_misfit():
+    """median(z^2) / median(chi^2_1) over 600 elements: its standard error is ~0.1 for pure noise."""
+    prob = _FakeProblem()
+    rng = np.random.default_rng(5)
+    var = np.full(N, 0.04)
+    step = type("S", (), {"r": rng.normal(size=N) * 0.2, "var_render": var})()
+    assert abs(model_check(prob, step, None).worst - 1.0) < 0.4
+    step.r = step.r * 3.0
+    assert model_check(prob, step, None).worst > 5.0
+
+
+def test_mahalanobis_chi2_and_trust_region():
+    assert abs(chi2_quantile(1) - 3.841) < 1e-3 and abs(chi2_quantile(2) - 5.991) < 1e-3
+    assert abs(chi2_quantile(3) / 7.8147 - 1) < 0.006 and abs(chi2_quantile(10) / 18.307 - 1) < 0.006
+    C = np.diag([4.0, 1.0])
+    assert abs(mahalanobis([2.0, 0.0], C) - 1.0) < 1e-12
+    assert mahalanobis([1.0, 0.0], np.full((2, 2), np.inf)) == np.inf
+    step = np.array([0.3, -5.0])
+    np.testing.assert_allclose(trust_region(step, 2.0), step * (2.0 / 5.0))
+    np.testing.assert_array_equal(trust_region(np.array([0.3, -1.9]), 2.0), [0.3, -1.9])
+    np.testing.assert_array_equal(trust_region(step, float("inf")), step)
+
+
+# ----------------------------------------------------------------------------------------------------- search
+def test_halton_points():
+    h = halton(4, 2)
+    np.testing.assert_allclose(h[:, 0], [0.5, 0.25, 0.75, 0.125])
+    np.testing.assert_allclose(h[:, 1], [1 / 3, 2 / 3, 1 / 9, 4 / 9])
+    assert np.all((halton(100, 5) >= 0) & (halton(100, 5) < 1))
+    with pytest.raises(FitError):
+        halton(3, 13)
+
+
+def test_search_ranges_follow_the_scene_and_contain_the_start():
+    L = 4.5
+    lo, hi = param_range("sigma_t", 0.5, L)
+    assert lo == pytest.approx(0.01 / L) and hi == pytest.approx(20 / L)
+    lo, hi = param_range("sigma_t", 30.0, L)            # a start outside widens the range to hold it
+    assert hi >= 3 * 30.0
+    assert param_range("g", 0.99, L) == (-0.9, 0.99)
+    assert param_range("intensity", 10.0, L) == (10 / 30, 300)
+    assert param_range("base_height", 1.0, L) == (1.0 - L, 1.0 + L)
+    for name, spec in SPECS.items():                   # every parameter has a search range inside its valid one
+        x0 = 0.5 if spec.lo < 0.5 < spec.hi else (10.0 if spec.lo < 10 < spec.hi else 0.0)
+        a, b = param_range(name, x0, L)
+        assert spec.lo <= a < b <= spec.hi, name
+    lo_u, hi_u = search_box(["sigma_t", "g"], {"sigma_t": 0.5, "g": 0.3}, L)
+    assert np.all(lo_u < hi_u)
+
+
+def test_profile_linear_recovers_a_scale():
+    rng = np.random.default_rng(6)
+    t = rng.random(50)
+    A = np.stack([t / 2.0, t * 3.0])
+    np.testing.assert_allclose(profile_linear(A, A, t), [2.0, 1 / 3.0])
+
+
+def test_distinct_starts_are_a_coarse_spacing_apart():
+    Y = np.array([[0.0, 0.0], [0.1, 0.0], [2.0, 0.0], [2.05, 0.1], [-3.0, 1.0]])
+    scan = Scan(Y, np.arange(5.0), np.ones((5, 1)), np.full(2, -4.0), np.full(2, 4.0), np.array([1.0, 1.0]))
+    starts = distinct_starts(scan, 3)
+    np.testing.assert_array_equal(np.asarray(starts), Y[[0, 2, 4]])
+
+
+def test_fit_config_refuses_bad_values():
+    with pytest.raises(FitError, match="spp"):
+        FitConfig(spp=0)
+    with pytest.raises(FitError, match="time_budget"):
+        FitConfig(time_budget=-1)
+    with pytest.raises(FitError, match="min_batches"):
+        FitConfig(min_batches=5, max_batches=2)
+    with pytest.raises(FitError, match="precision"):
+        FitConfig(precision=0)
