@@ -208,8 +208,10 @@ def test_fit_cli_refuses_a_target_brighter_than_the_searched_region_renders(fit_
     def fail(*args, **kwargs):
         pytest.fail("a local solve ran although the search should have refused the target")
 
-    monkeypatch.setattr(fitting.solver, "approach_round", fail)
-    monkeypatch.setitem(fitting.solver.ROUNDS, "approach", fail)
+    import fitting.fit
+
+    monkeypatch.setattr(fitting.fit, "fit_views", fitting.solver.fit_views)   # the fixture's guard, lifted: the
+    monkeypatch.setitem(fitting.solver.ROUNDS, "approach", fail)              # search runs, no local solve may
     out = fit_files["tmp"] / "r.json"
     assert fit_main([str(fit_files["scene"]), str(fit_files["bright"]), "--spp", "16", "--out", str(out)]) == 2
     err = _one_line_error(capsys)
