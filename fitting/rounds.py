@@ -29,7 +29,8 @@ class Step(NamedTuple):
     `var_render` (n,) the render's variance of each element of the mean residual; `quality` the smallest eigenvalue
     of the two-key normal matrix relative to the halves' own (`(Ja^T W Ja + Jb^T W Jb) / 2`, which also carries
     the Jacobians' noise): 1 for noise-free Jacobians, near 0 or below where their noise is as large as their
-    signal along some direction (the step is then solved with the halves' own matrix: shorter, never wild)."""
+    signal along some direction (the step is then solved with the halves' own matrix: shorter, never wild; the
+    covariances always use the two-key matrix, its eigenvalues floored, `_information`)."""
 
     delta: np.ndarray
     A: np.ndarray
@@ -126,12 +127,12 @@ def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixe
     g = 0.5 * (pa.J.T @ (W * pb.e) + pb.J.T @ (W * pa.e))
     A2 = normal_matrix(pa.J, pb.J, w)
     A1 = 0.5 * (normal_matrix(pa.J, pa.J, w) + normal_matrix(pb.J, pb.J, w))
-    quality = _relative_min_eig(A2, A1)
+    quality, A_cov = _information(A2, A1)
     A = A2 if quality >= quality_min else A1
     delta = spd_solve(A, -g)
     if delta is None:
         return None
-    A_inv = np.linalg.inv(A)
+    A_inv = np.linalg.inv(A_cov)
     J = 0.5 * (pa.J + pb.J)
     r = 0.5 * (pa.e + pb.e) + J @ delta
     var_render = 0.5 * (pa.u + pb.u) / (pa.spp + pb.spp)
@@ -140,15 +141,26 @@ def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixe
                 model_covariance(A_inv, J, w, var_target, pixel_of), r, J, var_render, quality)
 
 
-def _relative_min_eig(A2: np.ndarray, A1: np.ndarray) -> float:
-    """The smallest generalised eigenvalue of `A2` relative to the positive definite `A1` (-inf where A1 is not)."""
+INFORMATION_FLOOR = 0.02
+"""The covariances' normal matrix keeps the two-key matrix's eigenvalues relative to the halves' own, raised to at
+least this: along a direction where the two Jacobians do not agree (the two-key eigenvalue near 0 or below) the
+images carry no information the renders can show, and the standard error along it becomes at least 50x what the
+halves' own matrix (which counts their noise as signal) would say."""
+
+
+def _information(A2: np.ndarray, A1: np.ndarray) -> tuple[float, np.ndarray]:
+    """`(quality, A_cov)`: the smallest eigenvalue of the two-key `A2` relative to the positive definite `A1`
+    (-inf where A1 is not), and `A2` with those relative eigenvalues raised to `INFORMATION_FLOOR` (the normal
+    matrix of the covariances; `A2` itself where it is well determined)."""
     try:
         L = np.linalg.cholesky(0.5 * (A1 + A1.T))
     except np.linalg.LinAlgError:
-        return float("-inf")
+        return float("-inf"), A1
     Li = np.linalg.inv(L)
     M = Li @ (0.5 * (A2 + A2.T)) @ Li.T
-    return float(np.min(np.linalg.eigvalsh(0.5 * (M + M.T))))
+    lam, V = np.linalg.eigh(0.5 * (M + M.T))
+    A_cov = L @ (V * np.maximum(lam, INFORMATION_FLOOR)) @ V.T @ L.T
+    return float(lam.min()), 0.5 * (A_cov + A_cov.T)
 
 
 def damped_step(pa: Pass, pb: Pass, w: np.ndarray, lam: float) -> np.ndarray | None:
