@@ -64,7 +64,7 @@ class FitConfig:
     estimate_factor: int = 16
     max_approach: int = 12
     min_batches: int = 2
-    max_batches: int = 8
+    max_batches: int = 16
     render_share: float = 0.2
     linear_du: float = 0.05
     max_recentres: int = 3

@@ -36,8 +36,16 @@ REL = os.path.relpath(HERE, REPO)  # data_synthetic/foreign
 SEED0 = 20_000
 SPP = 2048
 EXTRA_SEEDS = {"spot_sideways_power__spot_sideways_near": SEED0 + 14, "box_fog__box_side": SEED0 + 15,
-               "box_fog__box_low": SEED0 + 16}
-"""Views added after the first 13 targets (seeds SEED0 + 1 ... + 13 in order) keep the earlier targets' seeds."""
+               "box_fog__box_low": SEED0 + 16,
+               "room_forward__room_point": SEED0 + 17, "spot_thin_far_start__spot_side": SEED0 + 18,
+               "spot_thin_far_start__spot_low": SEED0 + 19, "spot_denser__spot_side": SEED0 + 20,
+               "spot_denser__spot_low": SEED0 + 21, "glass_mirror__glass_mirror_side": SEED0 + 22,
+               "glass_mirror__glass_mirror_low": SEED0 + 23, "mesh_torus__mesh_side": SEED0 + 24,
+               "mesh_torus__mesh_low": SEED0 + 25}
+"""Views added after the first 13 targets (seeds SEED0 + 1 ... + 13 in order) keep the earlier targets' seeds. The
+cases from `room_forward` on are the fit-solver issue's table: a start far from a forward-scattering truth in the
+point-lit room, thin forward fog from backward-leaning starts, denser fog, a glass and a mirror sphere in the beam,
+and a triangle mesh, each in two views but the room."""
 
 GREY = {"albedo": 0.9}
 CASES = [
@@ -79,6 +87,23 @@ CASES = [
          "with room_point.json: must fail (another scene)", views=[("room_point", "room_point_moved")],
          truth={"sigma_t": 0.5, "g": 0.5, **GREY},
          fit=["sigma_t", "g"], init={"sigma_t": 0.3, "g": 0.2}, determined=[], expect="fail"),
+    dict(name="room_forward", description="the point-lit room with forward fog, started at the scene file's "
+         "backward-leaning values (a wrong basin of the loop before)", views=["room_point"],
+         truth={"sigma_t": 0.35, "g": 0.7, **GREY}, fit=["sigma_t", "g"], init={"sigma_t": 0.7, "g": 0.3},
+         determined=["sigma_t", "g"], expect="pass"),
+    dict(name="spot_thin_far_start", description="benchmark geometry, thin forward fog, two views, started at "
+         "isotropic scattering and nearly twice the extinction", views=["spot_side", "spot_low"],
+         truth={"sigma_t": 0.25, "g": 0.85, **GREY}, fit=["sigma_t", "g"], init={"sigma_t": 0.45, "g": 0.0},
+         determined=["sigma_t", "g"], expect="pass"),
+    dict(name="spot_denser", description="benchmark geometry, denser fog, mildly forward, two views",
+         views=["spot_side", "spot_low"], truth={"sigma_t": 1.4, "g": 0.2, **GREY}, fit=["sigma_t", "g"],
+         init={"sigma_t": 0.5, "g": 0.6}, determined=["sigma_t", "g"], expect="pass"),
+    dict(name="glass_mirror", description="a glass sphere and a mirror sphere in the spot's beam, two views",
+         views=["glass_mirror_side", "glass_mirror_low"], truth={"sigma_t": 0.45, "g": 0.55, **GREY},
+         fit=["sigma_t", "g"], init={"sigma_t": 0.3, "g": 0.2}, determined=["sigma_t", "g"], expect="pass"),
+    dict(name="mesh_torus", description="a bumpy torus of 21,504 triangles in the spot's beam, two views",
+         views=["mesh_side", "mesh_low"], truth={"sigma_t": 0.65, "g": 0.4, **GREY}, fit=["sigma_t", "g"],
+         init={"sigma_t": 0.3, "g": 0.7}, determined=["sigma_t", "g"], expect="pass"),
 ]
 
 
