@@ -180,51 +180,12 @@ def main(argv=None) -> int:
 
 
 def _run(args) -> int:
-    import jaxfog
-
-    names = check_names(args.fit)
-    init_given = parse_assignments(args.init)
-    if args.spp < 1:
-        raise FitError(f"--spp must be >= 1, got {args.spp}")
-    if not args.budget > 0:
-        raise FitError(f"--budget must be > 0 seconds, got {args.budget}")
-    not_fitted = sorted(set(init_given) - set(names))
-    if not_fitted:
-        raise FitError(f"--init {' '.join(f'{n}={init_given[n]:g}' for n in not_fitted)}: not in --fit "
-                       f"({' '.join(names)}); add it to --fit, or leave it out of --init (an unfitted parameter "
-                       f"keeps the scene file's value)")
+    names, init_given = check_arguments(args)
     pairs = pair_inputs(args.inputs)
     check_outputs(args.out, [p for pair in pairs for p in pair])
-    views, truths, scenes_full, targets_full = [], [], [], []
-    for scene_path, target_path in pairs:
-        if not os.path.exists(target_path):
-            raise FitError(f"target {target_path!r} not found")
-        try:
-            sf = jaxfog.load_scene(scene_path)
-        except (jaxfog.SceneError, OSError) as e:
-            raise FitError(str(e)) from None
-        try:
-            target, meta = jaxfog.read_exr(target_path)
-        except Exception as e:  # noqa: BLE001 - OIIO raises plain exceptions; report them as input errors
-            raise FitError(f"cannot read target {target_path!r}: {e}") from None
-        spp_t = int(meta["jaxfog:spp"]) if "jaxfog:spp" in meta else None
-        if args.downscale is None:
-            args.downscale = auto_downscale(sf.scene.camera.width, sf.scene.camera.height)
-        name = os.path.basename(target_path)
-        cam = sf.scene.camera
-        pass_spp = args.spp * FitConfig.estimate_factor // 2
-        check_size(cam.width // max(args.downscale, 1), cam.height // max(args.downscale, 1), pass_spp,
-                   sf.scene.max_depth, names={"width": f"{os.path.basename(scene_path)}: camera.width / --downscale",
-                                              "height": "camera.height / --downscale",
-                                              "spp": f"--spp x {FitConfig.estimate_factor // 2} (an estimate pass)",
-                                              "max_depth": "integrator.max_depth"})
-        views.append(make_view(sf.scene, target, name, args.downscale, spp_t))
-        scenes_full.append(sf.scene)
-        targets_full.append(target)
-        truths.append(true_values(meta))
+    loaded = [load_pair(scene_path, target_path, args) for scene_path, target_path in pairs]
+    views = [x[0] for x in loaded]
     candidates = load_candidates(args.candidates, args.downscale)
-    if args.candidate_spp is not None and args.candidate_spp < 1:
-        raise FitError(f"--candidate-spp must be >= 1, got {args.candidate_spp}")
     start = scene_values(views[0].scene)
     init = {n: init_given.get(n, start.get(n)) for n in names}
     for n in names:
@@ -233,37 +194,91 @@ def _run(args) -> int:
     cfg = FitConfig(spp=args.spp, seed=args.seed, time_budget=args.budget)
     print(f"fitting {', '.join(names)} to {len(views)} target(s) at "
           f"{views[0].scene.camera.width}x{views[0].scene.camera.height} px, {args.spp} spp")
-    log = (lambda *_: None) if args.quiet else print
-    result = fit_views(views, names, init, cfg, log=log)
-
-    truth = truths[0] if truths and all(t == truths[0] for t in truths) else {}
-    for f in ("sigma_t", "albedo"):  # a grey truth is every channel's truth (per-channel fits: sigma_t[r] ...)
-        if isinstance(truth.get(f), (int, float)):
-            for c in "rgb":
-                truth.setdefault(f"{f}[{c}]", truth[f])
+    result = fit_views(views, names, init, cfg, log=(lambda *_: None) if args.quiet else print)
+    truth = common_truth([x[3] for x in loaded])
     print_table(result, truth)
-    ranking = None
+    payload = result.to_json()
     if candidates:
         spp_c = args.candidate_spp or next((v.target_spp for v in views if v.target_spp), 256)
-        ranking = rank_candidates(result, views, candidates, spp_c, args.spp)
-    payload = result.to_json()
-    if ranking is not None:
-        payload["candidates"] = ranking
+        payload["candidates"] = rank_candidates(result, views, candidates, spp_c, args.spp)
     payload.update({"targets": [v.name for v in views], "truth": truth, "spp": args.spp, "seed": args.seed,
                     "budget": args.budget, "downscale": args.downscale})
     write_json_atomic(args.out, payload)
-    base = os.path.splitext(args.out)[0]
-    from .plots import plot_convergence, plot_comparison
-
-    full = [make_view(sc, t, v.name, preview_downscale(sc.camera.width, sc.camera.height, v.downscale),
-                      v.target_spp) for sc, t, v in zip(scenes_full, targets_full, views)]
-    plot_comparison(base + ".png", views, result, truth, full=full)
-    plot_convergence(base + "_convergence.png", result, truth)
-    print(f"wrote {args.out}, {base}.png, {base}_convergence.png")
+    write_figures(args.out, loaded, result, truth)
     if not result.success:
         print("FIT FAILED: " + "; ".join(result.messages), file=sys.stderr)
         return 1
     return 0
+
+
+def check_arguments(args) -> tuple[list[str], dict]:
+    """The fitted names and the given starting values, after the checks that need no file."""
+    names = check_names(args.fit)
+    init_given = parse_assignments(args.init)
+    if args.spp < 1:
+        raise FitError(f"--spp must be >= 1, got {args.spp}")
+    if not args.budget > 0:
+        raise FitError(f"--budget must be > 0 seconds, got {args.budget}")
+    if args.candidate_spp is not None and args.candidate_spp < 1:
+        raise FitError(f"--candidate-spp must be >= 1, got {args.candidate_spp}")
+    not_fitted = sorted(set(init_given) - set(names))
+    if not_fitted:
+        raise FitError(f"--init {' '.join(f'{n}={init_given[n]:g}' for n in not_fitted)}: not in --fit "
+                       f"({' '.join(names)}); add it to --fit, or leave it out of --init (an unfitted parameter "
+                       f"keeps the scene file's value)")
+    return names, init_given
+
+
+def load_pair(scene_path: str, target_path: str, args) -> tuple:
+    """One scene file and target, checked: `(view at the fit resolution, full scene, full target, truth)`; sets
+    `args.downscale` from the first scene when not given."""
+    import jaxfog
+
+    if not os.path.exists(target_path):
+        raise FitError(f"target {target_path!r} not found")
+    try:
+        sf = jaxfog.load_scene(scene_path)
+    except (jaxfog.SceneError, OSError) as e:
+        raise FitError(str(e)) from None
+    try:
+        target, meta = jaxfog.read_exr(target_path)
+    except Exception as e:  # noqa: BLE001 - OIIO raises plain exceptions; report them as input errors
+        raise FitError(f"cannot read target {target_path!r}: {e}") from None
+    cam = sf.scene.camera
+    if args.downscale is None:
+        args.downscale = auto_downscale(cam.width, cam.height)
+    f = max(args.downscale, 1)
+    check_size(cam.width // f, cam.height // f, args.spp * FitConfig.estimate_factor // 2, sf.scene.max_depth,
+               names={"width": f"{os.path.basename(scene_path)}: camera.width / --downscale",
+                      "height": "camera.height / --downscale",
+                      "spp": f"--spp x {FitConfig.estimate_factor // 2} (an estimate pass)",
+                      "max_depth": "integrator.max_depth"})
+    spp_t = int(meta["jaxfog:spp"]) if "jaxfog:spp" in meta else None
+    view = make_view(sf.scene, target, os.path.basename(target_path), args.downscale, spp_t)
+    return view, sf.scene, target, true_values(meta)
+
+
+def common_truth(truths: list[dict]) -> dict:
+    """The truth the targets' headers agree on (empty where they differ); a grey truth is every channel's."""
+    truth = dict(truths[0]) if truths and all(t == truths[0] for t in truths) else {}
+    for f in ("sigma_t", "albedo"):
+        if isinstance(truth.get(f), (int, float)):
+            for c in "rgb":
+                truth.setdefault(f"{f}[{c}]", truth[f])
+    return truth
+
+
+def write_figures(out: str, loaded: list[tuple], result, truth: dict) -> None:
+    """RESULT.png (target | fit | difference per view) and RESULT_convergence.png beside RESULT.json."""
+    from .plots import plot_comparison, plot_convergence
+
+    base = os.path.splitext(out)[0]
+    views = [x[0] for x in loaded]
+    full = [make_view(sc, t, v.name, preview_downscale(sc.camera.width, sc.camera.height, v.downscale),
+                      v.target_spp) for v, sc, t, _ in loaded]
+    plot_comparison(base + ".png", views, result, truth, full=full)
+    plot_convergence(base + "_convergence.png", result, truth)
+    print(f"wrote {out}, {base}.png, {base}_convergence.png")
 
 
 def load_candidates(paths, downscale: int | None) -> list[tuple[str, object, int]]:
