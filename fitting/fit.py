@@ -70,9 +70,8 @@ def check_outputs(out: str, inputs) -> list[str]:
 
 
 PREVIEW_SIDE = 64
-"""Largest side (px) of the figure's renders: the comparison figure renders the estimate at the target's resolution
-pooled by the smallest divisor of the fit's downscale that brings it to at most this (128 x 128 targets: 64 x 64,
-a quarter of the cost of the full resolution; on the main job ~2.5 s CPU saved against 128 x 128 at 16 spp)."""
+"""Largest side (px) of the figure's target: pooled by the smallest divisor of the fit's downscale that brings it to
+at most this (a 128 x 128 target: 64 x 64, its noise averaged over 4 pixels, still an image to look at)."""
 
 
 def preview_downscale(width: int, height: int, fit_downscale: int) -> int:

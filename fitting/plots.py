@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 
-import jax
 import numpy as np
 
 
@@ -23,41 +22,34 @@ def _tonemap(x, scale):
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
 
-def plot_comparison(path, views, result, truth, spp=16, full=None) -> None:
-    """Per view: target | fit | fit - target. `full`: the same views at a finer resolution than the fit's (shown
-    instead of the fit resolution: people look at images; `fit.preview_downscale`: at most 64 px a side), the
-    difference pooled to the fit's resolution (what the fit compared; pooling averages the render noise). `spp` 16:
-    the pooled difference still averages 16 x f^2 samples a block."""
+def plot_comparison(path, views, result, truth, full=None) -> None:
+    """Per view: the target (at `full`'s finer resolution where given: people look at images), the target at the fit
+    resolution, the fit there (`FitResult.images`: no render of its own) and fit - target (the mean of RGB, what the
+    fit compared)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    import jaxfog
-
-    from .params import apply
-
-    fig, axes = plt.subplots(len(views), 3, figsize=(9, 3.1 * len(views)), squeeze=False)
-    from .problem import pool
-
-    for row, v_fit in enumerate(views):
-        v = full[row] if full is not None else v_fit
-        scene = apply(v.scene, result.params)
-        img = np.asarray(jaxfog.render(scene, jax.random.key(4242), spp))
-        scale = float(np.percentile(v.target, 99.5)) or 1.0
-        f = v.target.shape[0] // v_fit.target.shape[0]
-        diff = pool(img - v.target, f).mean(axis=2)
-        lim = float(np.percentile(np.abs(diff), 99)) or 1.0
-        axes[row, 0].imshow(_tonemap(v.target, scale))
-        axes[row, 0].set_title(f"target {v.name}", fontsize=8)
-        axes[row, 1].imshow(_tonemap(img, scale))
-        axes[row, 1].set_title(f"fit ({spp} spp)", fontsize=8)
-        im = axes[row, 2].imshow(diff, cmap="RdBu_r", vmin=-lim, vmax=lim)
-        axes[row, 2].set_title(f"fit - target (mean of RGB, {diff.shape[1]} x {diff.shape[0]} px)", fontsize=8)
-        fig.colorbar(im, ax=axes[row, 2], fraction=0.046)
+    fig, axes = plt.subplots(len(views), 4, figsize=(12, 3.1 * len(views)), squeeze=False)
+    for row, v in enumerate(views):
+        big = full[row].target if full is not None else v.target
+        img = np.asarray(result.images[row]) if result.images else np.full(v.target.shape, np.nan)
+        scale = float(np.percentile(big, 99.5)) or 1.0
+        diff = (img - v.target).mean(axis=2)
+        lim = float(np.nanpercentile(np.abs(diff), 99)) or 1.0
+        h, w = v.target.shape[:2]
+        for col, (pic, title) in enumerate([(big, f"target {v.name}"), (v.target, f"target at {w} x {h} px"),
+                                            (img, "fit")]):
+            axes[row, col].imshow(_tonemap(pic, scale), interpolation="nearest")
+            axes[row, col].set_title(title, fontsize=8)
+        im = axes[row, 3].imshow(diff, cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
+        axes[row, 3].set_title("fit - target (mean of RGB)", fontsize=8)
+        fig.colorbar(im, ax=axes[row, 3], fraction=0.046)
         for a in axes[row]:
-            a.set_xticks([]); a.set_yticks([])
-    est = ", ".join(f"{n}={result.params[n]:.4f}" + (f" (true {truth[n]:.4f})" if n in truth else "")
+            a.set_xticks([])
+            a.set_yticks([])
+    est = ", ".join(f"{n}={result.params[n]:.4g}" + (f" (true {truth[n]:.4g})" if n in truth else "")
                     for n in result.names)
     fig.suptitle(("fit: " if result.success else "FAILED fit: ") + est, fontsize=9)
     fig.tight_layout()

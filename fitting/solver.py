@@ -145,9 +145,14 @@ class FitResult:
     history: list = field(default_factory=list)
     timing: list = field(default_factory=list)
     search: dict | None = None
+    images: list | None = None
+    """Per view, the render at the estimate at the fit resolution (linear radiance; the estimate's passes moved to the
+    estimate by their Jacobian): for figures, not written to JSON."""
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        out.pop("images")
+        return out
 
 
 # ---- the rounds -------------------------------------------------------------------------------------------------
@@ -442,7 +447,9 @@ def summarise(problem: Problem, state: FitState, cfg: FitConfig) -> FitResult:
                      for i, n in enumerate(names)},
         rounds=state.round, wall_s=wall, chi2=float(best.check.worst), correlation=corr.tolist(),
         covariance=C.tolist(), information=information, history=list(state.records),
-        timing=[{k2: r[k2] for k2 in ("round", "phase", "wall_s", "cpu_s")} for r in state.records], search=search)
+        timing=[{k2: r[k2] for k2 in ("round", "phase", "wall_s", "cpu_s")} for r in state.records], search=search,
+        images=[x * sc * math.sqrt(problem.n) for x, sc in zip(problem.split(best.step.r + problem.t),
+                                                                 problem.scales)])
 
 
 def _search_summary(names, scan: Scan) -> dict:
