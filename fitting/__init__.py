@@ -1,1 +1,2 @@
-"""Inverse fitting of the medium (sigma_t, g, albedo, light intensity) from target images, with optimistix."""
+"""Inverse fitting of the medium (extinction, albedo, phase function, height fog, light power) from target images:
+a global search, then a noise-aware Gauss-Newton solver (`fitting.solver`, docs/fitting.md)."""

@@ -116,6 +116,9 @@ def truth_scene(path: str, truth: dict) -> dict:
     with open(os.path.join(REPO, path)) as f:
         data = json.load(f)
     data = copy.deepcopy(data)
+    for shape in data.get("shapes", []):  # a mesh file relative to the scene file: absolute in the dict
+        if "file" in shape:
+            shape["file"] = os.path.normpath(os.path.join(REPO, os.path.dirname(path), shape["file"]))
     med = data["medium"]
     if "sigma_t[r]" in truth:
         med["sigma_t"] = [truth[f"sigma_t[{c}]"] for c in "rgb"]
