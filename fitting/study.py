@@ -40,6 +40,8 @@ FAMILIES = {
     "mesh": (("mesh_fog",), {"sigma_t": (0.3, 0.9), "g": (0.2, 0.8)}, {}),
     "height_fog": (("height_fog_ground", "height_fog_above"),
                    {"sigma_0": (0.3, 0.9), "height_scale": (0.5, 1.2), "g": (0.3, 0.7)}, {}),
+    "height_point": (("height_fog_point", "height_fog_point_above"),
+                     {"sigma_0": (0.3, 0.9), "height_scale": (0.5, 1.2), "g": (0.3, 0.7)}, {}),
     "chromatic": (("chromatic_fit_side", "chromatic_fit_low"),
                   {"sigma_t[r]": (0.2, 0.5), "sigma_t[g]": (0.35, 0.7), "sigma_t[b]": (0.5, 1.0), "g": (0.3, 0.7)},
                   {}),
