@@ -23,9 +23,10 @@ class Step(NamedTuple):
     """A Gauss-Newton step from a pair of independent halves and what it knows of its own noise.
 
     `delta` (k,): the step in the unconstrained coordinates; `A` (k, k) the two-key normal matrix; `cov` (k, k) the
-    step's covariance from the residuals themselves (`robust_covariance`); `cov_render` the part of it the renders'
-    noise explains (`model_covariance` with the renders' own variances), `cov_target` the part the target's noise
-    model explains; `r` (n,) the residual after the step (linearised); `J` (n, k) the halves' mean Jacobian;
+    estimate's covariance, the larger (per parameter) of `cov_robust` and the noise model's `cov_render + cov_target`;
+    `cov_robust` from the residuals themselves (`robust_covariance`, with the leverage correction);
+    `cov_render` the renders' noise's (`model_covariance` with the renders' own variances), `cov_target` the target
+    noise model's; `r` (n,) the residual after the step (linearised); `J` (n, k) the halves' mean Jacobian;
     `var_render` (n,) the render's variance of each element of the mean residual; `quality` the smallest eigenvalue
     of the two-key normal matrix relative to the halves' own (`(Ja^T W Ja + Jb^T W Jb) / 2`, which also carries
     the Jacobians' noise): 1 for noise-free Jacobians, near 0 or below where their noise is as large as their
@@ -42,6 +43,7 @@ class Step(NamedTuple):
     J: np.ndarray
     var_render: np.ndarray
     quality: float = 1.0
+    cov_robust: np.ndarray | None = None
 
 
 def spd_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
@@ -101,18 +103,26 @@ def model_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, var: np.nd
     return A_inv @ (S.T @ S) @ A_inv
 
 
-def robust_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, r: np.ndarray,
-                      pixel_of: np.ndarray) -> np.ndarray:
+def robust_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, r: np.ndarray, pixel_of: np.ndarray,
+                      leverage: bool = False) -> np.ndarray:
     """The step's covariance from its own residuals `r` (the cluster-robust sandwich: a pixel's three channels share
     their paths, so each pixel is one cluster): `A^-1 B A^-1`, `B = P / (P - k) sum_p s_p s_p^T`, `s_p` the sum over
     pixel p's elements of `J^T W r`. It needs no noise model: `E[r^2]` is the target's variance plus the renders',
-    whatever their distribution, and a model that misses the target by more than the noise widens it."""
+    whatever their distribution, and a model that misses the target by more than the noise widens it. With
+    `leverage`, each pixel's sum is divided by `1 - h_p` instead of the `P / (P - k)` factor (`h_p` the pixel's
+    share of the fit, `sum_c W J A^-1 J^T`, at most 0.9: the jackknife-like correction for the residuals a
+    high-leverage pixel loses to the fit)."""
     W = w * w
     s = J * (W * r)[:, None]
     P = int(pixel_of.max()) + 1
     S = np.zeros((P, J.shape[1]))
     np.add.at(S, pixel_of, s)
     k = J.shape[1]
+    if leverage:
+        h = np.zeros(P)
+        np.add.at(h, pixel_of, W * np.einsum("ij,jk,ik->i", J, A_inv, J))
+        S = S / (1.0 - np.clip(h, 0.0, 0.9))[:, None]
+        return A_inv @ (S.T @ S) @ A_inv
     B = (S.T @ S) * (P / max(P - k, 1))
     return A_inv @ B @ A_inv
 
@@ -137,9 +147,20 @@ def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixe
     J = 0.5 * (pa.J + pb.J)
     r = 0.5 * (pa.e + pb.e) + J @ delta
     var_render = 0.5 * (pa.u + pb.u) / (pa.spp + pb.spp)
-    cov = robust_covariance(A_inv, J, w, r, pixel_of)
-    return Step(delta, A, cov, model_covariance(A_inv, J, w, var_render, pixel_of),
-                model_covariance(A_inv, J, w, var_target, pixel_of), r, J, var_render, quality)
+    robust = robust_covariance(A_inv, J, w, r, pixel_of, leverage=True)
+    cov_r = model_covariance(A_inv, J, w, var_render, pixel_of)
+    cov_t = model_covariance(A_inv, J, w, var_target, pixel_of)
+    return Step(delta, A, larger(robust, cov_r + cov_t), cov_r, cov_t, r, J, var_render, quality, robust)
+
+
+def larger(C1: np.ndarray, C2: np.ndarray) -> np.ndarray:
+    """The covariance with, per parameter, the larger of the two variances: `C1` scaled by `D C1 D` with
+    `D = diag(max(1, sqrt(C2_ii / C1_ii)))` (C1's correlations kept)."""
+    d1, d2 = np.diag(C1), np.diag(C2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.where(d1 > 0, np.sqrt(np.maximum(d2, 0.0) / d1), 1.0)
+    f = np.where(np.isfinite(f), np.maximum(f, 1.0), 1.0)
+    return C1 * np.outer(f, f)
 
 
 UNRESOLVED = 1e-6

@@ -160,11 +160,14 @@ def summarise(lines: list[dict]) -> dict:
             z = (p["estimate"] - p["truth"]) / p["se"] if p["se"] and p["se"] > 0 else float("inf")
             se_m = math.hypot(p["se_target"], p["se_render"])
             zm = (p["estimate"] - p["truth"]) / se_m if se_m > 0 else float("inf")
-            fams.setdefault(d["family"], []).append((z, zm, d["wall_s"], bool(d.get("success"))))
+            se_r = p.get("se_robust") or 0.0
+            zr = (p["estimate"] - p["truth"]) / se_r if se_r > 0 else float("inf")
+            fams.setdefault(d["family"], []).append((z, zm, d["wall_s"], bool(d.get("success")), zr))
     out = {}
     for fam, rows in sorted(fams.items()) + [("all", [r for v in fams.values() for r in v])]:
         z = np.asarray([r[0] for r in rows])
         zm = np.asarray([r[1] for r in rows])
+        zr = np.asarray([r[4] for r in rows])
         m = len(z)
         out[fam] = {
             "parameters": m,
@@ -172,6 +175,7 @@ def summarise(lines: list[dict]) -> dict:
             "band_1se": 2 * math.sqrt(0.6827 * 0.3173 / m), "band_2se": 2 * math.sqrt(0.9545 * 0.0455 / m),
             "mean_z": float(np.mean(z[np.isfinite(z)])) if np.any(np.isfinite(z)) else float("nan"),
             "model_within_1se": float(np.mean(np.abs(zm) <= 1)), "model_within_2se": float(np.mean(np.abs(zm) <= 2)),
+            "robust_within_1se": float(np.mean(np.abs(zr) <= 1)), "robust_within_2se": float(np.mean(np.abs(zr) <= 2)),
             "success": float(np.mean([r[3] for r in rows])),
             "wall_median_s": float(np.median([r[2] for r in rows])), "wall_max_s": float(np.max([r[2] for r in rows])),
         }
@@ -184,15 +188,18 @@ def write_summary(outdir: Path) -> dict:
     lines = [json.loads(x) for x in (outdir / "fits.jsonl").read_text().splitlines() if x.strip()]
     s = summarise(lines)
     rows = ["| family | parameters | within 1 se (68.3% ± band) | within 2 se (95.4% ± band) | mean error / se | "
-            "noise model only: within 1 / 2 se | fits accepted | wall median / max (s) |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+            "noise model only: within 1 / 2 se | residuals only: within 1 / 2 se | fits accepted | "
+            "wall median / max (s) |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for fam, c in s["families"].items():
         rows.append(f"| {fam} | {c['parameters']} | {100 * c['within_1se']:.0f}% (± {100 * c['band_1se']:.0f}) | "
                     f"{100 * c['within_2se']:.0f}% (± {100 * c['band_2se']:.0f}) | {c['mean_z']:+.2f} | "
                     f"{100 * c['model_within_1se']:.0f}% / {100 * c['model_within_2se']:.0f}% | "
+                    f"{100 * c['robust_within_1se']:.0f}% / {100 * c['robust_within_2se']:.0f}% | "
                     f"{100 * c['success']:.0f}% | {c['wall_median_s']:.1f} / {c['wall_max_s']:.1f} |")
     text = (f"# Coverage study\n\n{s['fits']} fits (`python -m fitting.study`); a row per family, parameters "
-            f"pooled.\n\n" + "\n".join(rows) + "\n")
+            f"pooled. The reported standard error is the larger of the noise model's and the residuals' (robust) "
+            f"one; the two columns before the last but one show each alone.\n\n" + "\n".join(rows) + "\n")
     if s["errors"]:
         text += "\nRefused or crashed fits:\n\n" + "\n".join(f"- {e}" for e in s["errors"]) + "\n"
     (outdir / "coverage.md").write_text(text)
