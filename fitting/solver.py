@@ -253,6 +253,12 @@ LAMBDA_START, LAMBDA_MIN, LAMBDA_SMALL, LAMBDA_MAX = 1e-2, 1e-4, 0.1, 1e4
 small step still ends the approach, and the most before the approach ends at a point no damped step improves."""
 
 
+def _moved(p: Pass, delta: np.ndarray) -> Pass:
+    """A pass at `y0` as seen from `y0 + delta`, to first order: its residual moved by its own Jacobian (the
+    Jacobian's own change over `delta` enters the next step at second order)."""
+    return Pass(p.e + p.J @ delta, p.u, p.J, p.spp)
+
+
 def _combine(passes: list[Pass]) -> Pass:
     """Passes at one point as one pass of all their samples (spp-weighted means)."""
     n = sum(p.spp for p in passes)
@@ -261,9 +267,11 @@ def _combine(passes: list[Pass]) -> Pass:
 
 
 def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> FitState:
-    """One more pass of `estimate_factor` x spp at `y0 = state.y`, the step from all of them together; re-centre
-    `y0` where the step changes some unconstrained coordinate by more than `linear_du` (the linearisation is trusted
-    only that near `y0`), else stop when precise enough, when more batches would barely help, or at the budget."""
+    """One more pass of `estimate_factor` x spp at `y0 = state.y`, the step from all of them together. Where the step
+    changes some unconstrained coordinate by more than `linear_du`, `y0` moves to the estimate and the passes so far
+    move with it by their Jacobians (`_moved`; at most `max_recentres` times); where it is also beyond half the trust
+    region and significant, the fit goes back to the approach. Else stop when precise enough, when more passes would
+    barely help, or at the budget."""
     halves = _halves(problem, state.y, cfg, state.round, cfg.estimate_factor)
     if halves is None:
         return _failed_pass(problem, state, log)
@@ -280,13 +288,17 @@ def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
     records = _record(state, problem, "estimate", y_hat, log, batches=len(passes), step_se=length,
                       worst_se=float(np.max(rel)), quality=step.quality)
     state = state.replace(round=state.round + 1, failures=0, records=records)
-    far = float(np.max(np.abs(step.delta))) > cfg.linear_du and length > SIGNIFICANT
-    if far and state.recentres < cfg.max_recentres and not _over_budget(state, cfg):
-        log(f"  (the estimate is {float(np.max(np.abs(step.delta))):.3f} from the passes' point in an unconstrained "
-            f"coordinate, beyond the linear range {cfg.linear_du:g}, and {length:.1f} standard errors: back to the "
-            f"approach)")
+    big = float(np.max(np.abs(step.delta)))
+    if big > cfg.max_step_u / 2 and length > SIGNIFICANT and state.recentres < cfg.max_recentres:
+        log(f"  (the estimate is {big:.2f} from the passes' point in an unconstrained coordinate and {length:.1f} "
+            f"standard errors: too far for one linearisation, back to the approach)")
         return state.replace(phase="approach", passes=(), recentres=state.recentres + 1, base=None, trial=None,
                              lam=LAMBDA_START)
+    if big > cfg.linear_du and state.recentres < cfg.max_recentres and not _over_budget(state, cfg):
+        log(f"  (re-centred on the estimate, {big:.3f} away in an unconstrained coordinate; the passes so far moved "
+            f"with it by their Jacobians)")
+        return state.replace(y=y_hat, passes=tuple((_moved(a, step.delta), _moved(b, step.delta)) for a, b in passes),
+                             recentres=state.recentres + 1)
     model = np.diag(step.cov_render) + np.diag(step.cov_target)
     render_small = np.all(np.diag(step.cov_render) <= cfg.render_share * model)
     linear = float(np.max(np.abs(step.delta))) <= cfg.linear_du and step.quality >= QUALITY_MIN
