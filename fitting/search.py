@@ -140,8 +140,10 @@ def _per_view(problem: Problem, X: np.ndarray) -> list[np.ndarray]:
 
 
 def candidates_count(k: int) -> int:
-    """Candidates per scan stage for k parameters: 16 + 8 k, at most 96 (32 for the usual two)."""
-    return min(16 + 8 * k, 96)
+    """Candidates per scan stage for k parameters: 24 + 12 k, at most 128 (48 for the usual two). Measured: with
+    16 + 8 k (40 for three parameters), a height fog lit by a point light (sigma_0, H, g) was started in three wrong
+    basins and refused; with 60 it was found (+1.1%, +0.3%, -0.0002, within 0.2 se)."""
+    return min(24 + 12 * k, 128)
 
 
 def global_search(problem: Problem, init: dict, key, spp: int) -> Scan:

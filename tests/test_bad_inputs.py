@@ -221,7 +221,7 @@ def test_fit_cli_refuses_a_target_brighter_than_the_searched_region_renders(fit_
 
 
 def test_fit_result_json_has_no_nan_tokens(tmp_path):
-    """`--rounds 1` leaves some uncertainties unknown (NaN): RESULT.json stays valid JSON, with null there."""
+    """An unknown uncertainty (NaN) or an infinite ratio: RESULT.json stays valid JSON, with null there."""
     from fitting.fit import write_json_atomic
 
     path = tmp_path / "r.json"
