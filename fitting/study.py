@@ -213,7 +213,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, help="output folder (fits.jsonl, coverage.md, coverage.json)")
     ap.add_argument("--families", default=",".join([*FAMILIES, "foreign"]),
                     help="comma-separated families (default: all, and foreign)")
-    ap.add_argument("--seeds", type=int, default=12, help="fits per family (default 12)")
+    ap.add_argument("--seeds", type=int, default=9, help="fits per family (default 9)")
     ap.add_argument("--foreign-seeds", type=int, default=3, help="fit seeds per foreign case (default 3)")
     ap.add_argument("--summary", action="store_true", help="only summarise DIR/fits.jsonl")
     args = ap.parse_args(argv)
