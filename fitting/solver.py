@@ -196,8 +196,8 @@ def _failed_pass(problem, state: FitState, log) -> FitState:
     msg = f"round {state.round}: a render was not finite; the round is repeated with new keys"
     log("  (" + msg + ")")
     if state.failures + 1 >= 3:
-        raise FloatingPointError(f"three passes in a row rendered non-finite values at "
-                                 f"{_values(problem.names, state.y)}")
+        raise FitError(f"three passes in a row rendered non-finite values at {_values(problem.names, state.y)}: "
+                       f"no estimate (a render's image must be finite)")
     return state.replace(round=state.round + 1, failures=state.failures + 1, messages=state.messages + (msg,))
 
 
