@@ -230,3 +230,26 @@ def test_fit_config_refuses_bad_values():
         FitConfig(min_batches=5, max_batches=2)
     with pytest.raises(FitError, match="precision"):
         FitConfig(precision=0)
+
+
+def test_non_finite_passes_end_the_fit_with_a_clear_error():
+    """A pass whose render is not finite is repeated with new keys; the third in a row ends the fit (FitError)."""
+    import time
+
+    from fitting.solver import FitState, approach_round
+
+    class NaNProblem(_FakeProblem):
+        names = ["sigma_t", "g"]
+
+        def pass_(self, y, key, spp):
+            return Pass(np.full(N, np.nan), np.ones(N), np.ones((N, K)), spp)
+
+    prob = NaNProblem()
+    state = FitState(phase="approach", round=0, y=np.zeros(K), init={}, t0=time.perf_counter(), c0=0.0,
+                     t_attempt=time.perf_counter())
+    cfg = FitConfig(spp=1)
+    state = approach_round(prob, state, cfg, lambda *a: None)
+    state = approach_round(prob, state, cfg, lambda *a: None)
+    assert state.failures == 2 and state.phase == "approach" and len(state.messages) == 2
+    with pytest.raises(FitError, match="non-finite"):
+        approach_round(prob, state, cfg, lambda *a: None)
