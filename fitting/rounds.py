@@ -23,8 +23,8 @@ class Step(NamedTuple):
     """A Gauss-Newton step from a pair of independent halves and what it knows of its own noise.
 
     `delta` (k,): the step in the unconstrained coordinates; `A` (k, k) the two-key normal matrix; `cov` (k, k) the
-    estimate's covariance, the larger (per parameter) of `cov_robust` and the noise model's `cov_render + cov_target`;
-    `cov_robust` from the residuals themselves (`robust_covariance`, with the leverage correction);
+    estimate's covariance from the residuals themselves (`robust_covariance`, with the leverage correction; the same
+    array as `cov_robust`);
     `cov_render` the renders' noise's (`model_covariance` with the renders' own variances), `cov_target` the target
     noise model's; `r` (n,) the residual after the step (linearised); `J` (n, k) the halves' mean Jacobian;
     `var_render` (n,) the render's variance of each element of the mean residual; `quality` the smallest eigenvalue
@@ -150,17 +150,7 @@ def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixe
     robust = robust_covariance(A_inv, J, w, r, pixel_of, leverage=True)
     cov_r = model_covariance(A_inv, J, w, var_render, pixel_of)
     cov_t = model_covariance(A_inv, J, w, var_target, pixel_of)
-    return Step(delta, A, larger(robust, cov_r + cov_t), cov_r, cov_t, r, J, var_render, quality, robust)
-
-
-def larger(C1: np.ndarray, C2: np.ndarray) -> np.ndarray:
-    """The covariance with, per parameter, the larger of the two variances: `C1` scaled by `D C1 D` with
-    `D = diag(max(1, sqrt(C2_ii / C1_ii)))` (C1's correlations kept)."""
-    d1, d2 = np.diag(C1), np.diag(C2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        f = np.where(d1 > 0, np.sqrt(np.maximum(d2, 0.0) / d1), 1.0)
-    f = np.where(np.isfinite(f), np.maximum(f, 1.0), 1.0)
-    return C1 * np.outer(f, f)
+    return Step(delta, A, robust, cov_r, cov_t, r, J, var_render, quality, robust)
 
 
 UNRESOLVED = 1e-6

@@ -58,7 +58,7 @@ class FitConfig:
     precision: float = 0.01
     max_se: float = 0.1
     chi2_max: float = 6.0
-    max_starts: int = 3
+    max_starts: int = 5
     scan_spp: int = 32
     approach_factor: int = 8
     estimate_factor: int = 16
@@ -269,9 +269,9 @@ def _combine(passes: list[Pass]) -> Pass:
 def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> FitState:
     """One more pass of `estimate_factor` x spp at `y0 = state.y`, the step from all of them together. Where the step
     changes some unconstrained coordinate by more than `linear_du`, `y0` moves to the estimate and the passes so far
-    move with it by their Jacobians (`_moved`; at most `max_recentres` times); where it is also beyond half the trust
-    region and significant, the fit goes back to the approach. Else stop when precise enough, when more passes would
-    barely help, or at the budget."""
+    move with it by their Jacobians (`_moved`; at most `max_recentres` times, never by more than half the trust
+    region); a step beyond that and significant sends the fit back to the approach, one within its noise leaves the
+    passes where they are. Else stop when precise enough, when more passes would barely help, or at the budget."""
     halves = _halves(problem, state.y, cfg, state.round, cfg.estimate_factor)
     if halves is None:
         return _failed_pass(problem, state, log)
@@ -294,11 +294,14 @@ def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
             f"standard errors: too far for one linearisation, back to the approach)")
         return state.replace(phase="approach", passes=(), recentres=state.recentres + 1, base=None, trial=None,
                              lam=LAMBDA_START)
-    if big > cfg.linear_du and state.recentres < cfg.max_recentres and not _over_budget(state, cfg):
+    if cfg.linear_du < big <= cfg.max_step_u / 2 and state.recentres < cfg.max_recentres \
+            and not _over_budget(state, cfg):
         log(f"  (re-centred on the estimate, {big:.3f} away in an unconstrained coordinate; the passes so far moved "
             f"with it by their Jacobians)")
         return state.replace(y=y_hat, passes=tuple((_moved(a, step.delta), _moved(b, step.delta)) for a, b in passes),
                              recentres=state.recentres + 1)
+    # a step beyond half the trust region but within its noise: noise along a weakly determined direction; the
+    # passes accumulate where they are (the estimate then cannot stop: it is not within the linear range)
     model = np.diag(step.cov_render) + np.diag(step.cov_target)
     render_small = np.all(np.diag(step.cov_render) <= cfg.render_share * model)
     linear = float(np.max(np.abs(step.delta))) <= cfg.linear_du and step.quality >= QUALITY_MIN

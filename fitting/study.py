@@ -153,9 +153,15 @@ def _run(family, seed, views, names, start, truth, cfg, case=None) -> dict:
 
 
 def summarise(lines: list[dict]) -> dict:
-    """Coverage per family and overall, for the reported se and for the noise model's (target and renders)."""
+    """Coverage per family and overall, over the parameters of the accepted fits (those the fit reports as an
+    estimate with a standard error; a refused fit or a parameter not pinned down makes no such claim), for the
+    reported se and for the noise model's (target and renders); the share of fits accepted."""
     fams: dict[str, list] = {}
+    accepted: dict[str, list] = {}
     for d in lines:
+        accepted.setdefault(d["family"], []).append(bool(d.get("success")))
+        if not d.get("success"):
+            continue
         for n, p in (d.get("params") or {}).items():
             z = (p["estimate"] - p["truth"]) / p["se"] if p["se"] and p["se"] > 0 else float("inf")
             se_m = math.hypot(p["se_target"], p["se_render"])
@@ -165,6 +171,8 @@ def summarise(lines: list[dict]) -> dict:
             fams.setdefault(d["family"], []).append((z, zm, d["wall_s"], bool(d.get("success")), zr))
     out = {}
     for fam, rows in sorted(fams.items()) + [("all", [r for v in fams.values() for r in v])]:
+        if not rows:
+            continue
         z = np.asarray([r[0] for r in rows])
         zm = np.asarray([r[1] for r in rows])
         zr = np.asarray([r[4] for r in rows])
@@ -176,7 +184,7 @@ def summarise(lines: list[dict]) -> dict:
             "mean_z": float(np.mean(z[np.isfinite(z)])) if np.any(np.isfinite(z)) else float("nan"),
             "model_within_1se": float(np.mean(np.abs(zm) <= 1)), "model_within_2se": float(np.mean(np.abs(zm) <= 2)),
             "robust_within_1se": float(np.mean(np.abs(zr) <= 1)), "robust_within_2se": float(np.mean(np.abs(zr) <= 2)),
-            "success": float(np.mean([r[3] for r in rows])),
+            "success": float(np.mean(accepted[fam] if fam != "all" else [a for v in accepted.values() for a in v])),
             "wall_median_s": float(np.median([r[2] for r in rows])), "wall_max_s": float(np.max([r[2] for r in rows])),
         }
     errors = [d for d in lines if "error" in d]
@@ -197,9 +205,11 @@ def write_summary(outdir: Path) -> dict:
                     f"{100 * c['model_within_1se']:.0f}% / {100 * c['model_within_2se']:.0f}% | "
                     f"{100 * c['robust_within_1se']:.0f}% / {100 * c['robust_within_2se']:.0f}% | "
                     f"{100 * c['success']:.0f}% | {c['wall_median_s']:.1f} / {c['wall_max_s']:.1f} |")
-    text = (f"# Coverage study\n\n{s['fits']} fits (`python -m fitting.study`); a row per family, parameters "
-            f"pooled. The reported standard error is the larger of the noise model's and the residuals' (robust) "
-            f"one; the two columns before the last but one show each alone.\n\n" + "\n".join(rows) + "\n")
+    text = (f"# Coverage study\n\n{s['fits']} fits (`python -m fitting.study`); a row per family, the parameters "
+            f"of its accepted fits pooled (a refused fit, or one with a parameter not pinned down, reports no "
+            f"estimate to trust); the share of fits accepted in its own column. Within 1 / 2 se: of the reported "
+            f"standard error (recorded as `se` by the code that ran); the next two columns: the noise model's alone "
+            f"and the residuals' (robust, leverage-corrected) alone.\n\n" + "\n".join(rows) + "\n")
     if s["errors"]:
         text += "\nRefused or crashed fits:\n\n" + "\n".join(f"- {e}" for e in s["errors"]) + "\n"
     (outdir / "coverage.md").write_text(text)

@@ -63,8 +63,8 @@ def _linear_problem(rng, sd=0.05, channel_corr=True):
 def test_gauss_newton_recovers_a_linear_problem_and_its_covariance_is_honest():
     """Over 400 independent pass pairs: the step's mean is y_star within 4 standard errors of the mean, and its
     spread matches both covariances (the robust one with its leverage correction, and the noise model's) within 15%
-    in variance (the standard error of a variance over 400 draws is ~7%); the reported one is the larger of the two
-    per parameter."""
+    in variance (the standard error of a variance over 400 draws is ~7%); the reported one is the robust one
+    (`fitting/study.py` measures both on whole fits)."""
     rng = np.random.default_rng(0)
     J, y_star, half = _linear_problem(rng)
     w = np.ones(N)
@@ -75,7 +75,7 @@ def test_gauss_newton_recovers_a_linear_problem_and_its_covariance_is_honest():
         steps.append(st.delta)
         covs.append(st.cov_robust)
         model.append(st.cov_render)
-        assert np.all(np.diag(st.cov) >= np.maximum(np.diag(st.cov_robust), np.diag(st.cov_render)) * (1 - 1e-12))
+        np.testing.assert_array_equal(st.cov, st.cov_robust)
     steps = np.asarray(steps)
     emp = np.cov(steps.T)
     sem = np.sqrt(np.diag(emp) / len(steps))
@@ -109,16 +109,6 @@ def test_robust_covariance_follows_the_residuals_it_is_given():
     C3 = robust_covariance(A_inv, J, np.ones(N), r, PIXEL_OF, leverage=True)
     assert np.all(np.diag(C3) >= np.diag(C1) * (P - K) / P * (1 - 1e-12))
     assert np.all(np.diag(C3) <= np.diag(C1) * 1.2)
-
-
-def test_larger_takes_the_larger_variance_per_parameter_and_keeps_correlations():
-    from fitting.rounds import larger
-
-    C1 = np.array([[4.0, 1.0], [1.0, 1.0]])
-    C2 = np.diag([1.0, 9.0])
-    L = larger(C1, C2)
-    np.testing.assert_allclose(np.diag(L), [4.0, 9.0])
-    np.testing.assert_allclose(L[0, 1] / np.sqrt(L[0, 0] * L[1, 1]), C1[0, 1] / 2.0)
 
 
 def test_damped_step_is_gauss_newton_without_damping_and_shrinks_with_it():
