@@ -385,8 +385,9 @@ def test_spot_fog_variants_differ_only_where_stated(name, changes):
 def test_every_shipped_scene_loads(path):
     sf = load_scene(path)
     assert sf.name == path.stem and sf.data["description"].strip()
-    # the height-fog and issue-14 fitting views (`*_fit_*`) are small on purpose (32 x 32 targets, fitted at 8 x 8)
-    size = 32 if path.stem in ("height_fog_ground", "height_fog_above") or "_fit_" in path.stem else 128
+    # the height-fog views (`height_fog_*`) and the phase-function fitting views (`*_fit_*`) are small on purpose
+    # (32 x 32 targets, fitted at 8 x 8)
+    size = 32 if path.stem.startswith("height_fog_") or "_fit_" in path.stem else 128
     assert (sf.scene.camera.width, sf.scene.camera.height, sf.spp) == (size, size, 64)
 
 
