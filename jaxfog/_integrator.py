@@ -678,7 +678,7 @@ def computed_once(tr: Tracer, x):
     render loops set from their own traced data (a uniform of the work item; the regenerating loop's queue
     position), else whether the camera's fov is finite (a constant, and the barrier gone, when the scene is a
     constant of the compiled program). Only on the CPU backend (`tr.barriers`); elsewhere `x` is returned as it
-    is. Where it pays is measured: `docs/results/bench/PROFILE.md`, session 7."""
+    is. Where it pays is measured: `docs/results/bench/PROFILE.md`, "A sample at Mitsuba's cost"."""
     if not tr.barriers:
         return x
     pred = tr.guard if tr.guard is not None else jnp.isfinite(tr.scene.camera.fov)

@@ -27,7 +27,7 @@ def dot_unrolled(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Ar
     """`dot` written as three products and two sums (no reduction). The same value up to float32 rounding; for XLA's
     CPU backend it is elementwise, so it fuses into the vectorized kernel that reads it, where a reduction over 3
     components whose result several values read becomes its own kernel of scalar code. Used by the ray-shape tests
-    (3 rays a bounce; `docs/results/bench/PROFILE.md`, session 8: spot_fog's sample 0.93-0.94x its time, area_light
+    (3 rays a bounce; `docs/results/bench/PROFILE.md`, "Narrow values computed once": spot_fog's sample 0.93-0.94x its time, area_light
     0.56x, valley 0.60x, mirror_glass 1.09x). Not everywhere: as `dot` itself it made the whole sample 1.10x slower
     (the reductions also keep XLA from copying cheap producers into every consumer)."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
@@ -142,7 +142,7 @@ class RGB(NamedTuple):
     The tracer carries its throughputs, weights and radiance as `RGB` inside a bounce, not as `(3,)` arrays: under
     `vmap` a `(3,)` array becomes `(lanes, 3)`, whose XLA CPU kernels index the minor axis of 3 per element and are
     often scalar code, while each channel of an `RGB` is a contiguous `(lanes,)` array in vectorized kernels
-    (`docs/results/bench/PROFILE.md`, session 9). Arithmetic is per channel; the other operand may be an `RGB`, a
+    (`docs/results/bench/PROFILE.md`, "RGB values as three channels"). Arithmetic is per channel; the other operand may be an `RGB`, a
     `(..., 3)` array (taken channel by channel) or a scalar (every channel). The values are those of the array
     arithmetic (the same float32 operations)."""
 
