@@ -223,10 +223,11 @@ class Problem:
         return np.concatenate(parts)
 
     def split(self, x: np.ndarray) -> list[np.ndarray]:
-        """A vector over all elements as one `(h, w, 3)` array per view."""
+        """Values over all elements (the last axis) as one `(..., h, w, 3)` array per view."""
+        x = np.asarray(x)
         out, at = [], 0
         for v in self.views:
-            out.append(np.asarray(x[at:at + v.target.size]).reshape(v.target.shape))
+            out.append(x[..., at:at + v.target.size].reshape(x.shape[:-1] + v.target.shape))
             at += v.target.size
         return out
 

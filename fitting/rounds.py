@@ -127,6 +127,16 @@ def robust_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, r: np.nda
     return A_inv @ B @ A_inv
 
 
+def normal_equations(pa: Pass, pb: Pass, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`(g, A2, A1)` of two independent halves: the gradient `(Ja^T W eb + Jb^T W ea) / 2`, in which no Jacobian
+    multiplies the residual of its own paths, the two-key normal matrix `sym(Ja^T W Jb)` and the halves' own
+    `(Ja^T W Ja + Jb^T W Jb) / 2` (which also carries the Jacobians' noise)."""
+    W = w * w
+    g = 0.5 * (pa.J.T @ (W * pb.e) + pb.J.T @ (W * pa.e))
+    A1 = 0.5 * (normal_matrix(pa.J, pa.J, w) + normal_matrix(pb.J, pb.J, w))
+    return g, normal_matrix(pa.J, pb.J, w), A1
+
+
 def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixel_of: np.ndarray,
                  quality_min: float = 0.25) -> Step | None:
     """One Gauss-Newton step from two independent halves: `delta = -A^-1 (Ja^T W eb + Jb^T W ea) / 2`,
@@ -134,10 +144,7 @@ def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixe
     the same paths are correlated, which biases the fixed point), and `A` carries no `Var[J]`. Where the Jacobians'
     noise is too large for `A` (`Step.quality` below `quality_min`), the halves' own normal matrix instead. None
     where that is singular too (a parameter without effect on the images)."""
-    W = w * w
-    g = 0.5 * (pa.J.T @ (W * pb.e) + pb.J.T @ (W * pa.e))
-    A2 = normal_matrix(pa.J, pb.J, w)
-    A1 = 0.5 * (normal_matrix(pa.J, pa.J, w) + normal_matrix(pb.J, pb.J, w))
+    g, A2, A1 = normal_equations(pa, pb, w)
     quality, A_cov = _information(A2, A1, quality_min)
     A = A2 if quality >= quality_min else A1
     delta = spd_solve(A, -g)
@@ -180,9 +187,8 @@ def damped_step(pa: Pass, pb: Pass, w: np.ndarray, lam: float) -> np.ndarray | N
     """The Levenberg-Marquardt step from two independent halves: `(A + lam diag(A)) delta = -g`, with the two-key
     normal matrix `A` and gradient `g` of `gauss_newton` (`lam` 0: its step). None where the matrix is not positive
     definite even with each half's own normal matrix."""
-    W = w * w
-    g = 0.5 * (pa.J.T @ (W * pb.e) + pb.J.T @ (W * pa.e))
-    for A in (normal_matrix(pa.J, pb.J, w), 0.5 * (normal_matrix(pa.J, pa.J, w) + normal_matrix(pb.J, pb.J, w))):
+    g, A2, A1 = normal_equations(pa, pb, w)
+    for A in (A2, A1):
         D = np.diag(np.maximum(np.diag(A), 1e-12 * max(float(np.trace(A)), 1e-300)))
         delta = spd_solve(A + lam * D, -g)
         if delta is not None:

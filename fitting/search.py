@@ -127,16 +127,8 @@ def score(problem: Problem, Y: np.ndarray, key, spp: int) -> tuple[np.ndarray, n
     terms = ((A - problem.t) * (B - problem.t)).reshape(len(Y), -1, 3).sum(axis=2)
     loss = terms.sum(axis=1) + np.sqrt(np.sum(terms ** 2, axis=1))
     loss = np.where(np.isfinite(loss), loss, np.inf)
-    bright = np.stack([np.mean(x, axis=1) for x in _per_view(problem, 0.5 * (A + B))], axis=1) * math.sqrt(problem.n)
+    bright = np.stack([x.mean(axis=(1, 2, 3)) for x in problem.split(0.5 * (A + B))], axis=1) * math.sqrt(problem.n)
     return Y, loss, bright
-
-
-def _per_view(problem: Problem, X: np.ndarray) -> list[np.ndarray]:
-    out, at = [], 0
-    for v in problem.views:
-        out.append(X[:, at:at + v.target.size])
-        at += v.target.size
-    return out
 
 
 def candidates_count(k: int) -> int:
