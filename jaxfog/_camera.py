@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._math import cross, safe_normalize
+from ._validate import FOV_RANGE, check_range, check_vector, concrete_values
 
 
 def _vec3(x) -> Float[Array, "3"]:
@@ -18,8 +20,9 @@ def _scalar(x) -> Float[Array, ""]:
 
 
 class Camera(eqx.Module):
-    """Pinhole camera at `origin` looking at `target` with `up` (scene units), horizontal `fov` in degrees (0, 180),
-    image `width` x `height` pixels, integers >= 1 (static: a new resolution compiles a new program)."""
+    """Pinhole camera at `origin` looking at `target` (another point) with `up` (scene units; finite, `up` not
+    parallel to `target - origin`), horizontal `fov` in degrees in (0, 180), image `width` x `height` pixels,
+    integers >= 1 (static: a new resolution compiles a new program)."""
 
     origin: Float[Array, "3"] = eqx.field(converter=_vec3)
     target: Float[Array, "3"] = eqx.field(converter=_vec3)
@@ -33,6 +36,19 @@ class Camera(eqx.Module):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"Camera: {name} must be a positive integer (pixels), got {v!r}")
+        check_vector("Camera", "origin", self.origin, nonzero=False)
+        check_vector("Camera", "target", self.target, nonzero=False)
+        check_vector("Camera", "up", self.up)
+        check_range("Camera", "fov", self.fov, FOV_RANGE)
+        vals = concrete_values(self.origin, self.target, self.up)
+        if vals is not None:
+            o, t, up = vals
+            view = t - o
+            if not np.any(view != 0):
+                raise ValueError(f"Camera.target = {t.tolist()} equals origin; expected a point other than origin")
+            if np.linalg.norm(np.cross(up, view)) <= 1e-6 * np.linalg.norm(up) * np.linalg.norm(view):
+                raise ValueError(f"Camera.up = {up.tolist()} is parallel to the view direction target - origin = "
+                                 f"{view.tolist()}; expected an up vector not parallel to it")
 
     def generate_ray(self, pixel: Float[Array, "2"]) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
         """Ray `(origin, unit direction)` through the film position `pixel = (x, y)` in pixels, x to the right and y

@@ -59,11 +59,20 @@ class MeshError(ValueError):
 
 class MeshData(NamedTuple):
     """A mesh as read from a file: `vertices` (V, 3) float64, `faces` (F, 3) int64 (counter-clockwise = front),
-    `normals` (V, 3) float64 vertex normals, or None when the file has none."""
+    `normals` (N, 3) float64 normals, or None when the file has none, and `normal_faces` (F, 3) int64: the index into
+    `normals` of each face corner (an OBJ's `f v//vn` indexes normals apart from vertices), or None when the normals
+    are per vertex (`N = V`, corner `j` of face `i` has `normals[faces[i, j]]`, as in a PLY)."""
 
     vertices: np.ndarray
     faces: np.ndarray
     normals: np.ndarray | None
+    normal_faces: np.ndarray | None = None
+
+    def corner_normals(self) -> np.ndarray | None:
+        """The normal at each face corner, (F, 3 corners, 3), or None without normals."""
+        if self.normals is None:
+            return None
+        return self.normals[self.faces if self.normal_faces is None else self.normal_faces]
 
 
 # ------------------------------------------------------------------------------------------------------- readers
@@ -76,8 +85,19 @@ def _fan(polys) -> list:
     return tris
 
 
+def _obj_index(text: str, count: int, what: str) -> int:
+    """An OBJ index (1-based; negative: relative to the `count` elements read so far) as a 0-based index."""
+    i = int(text)
+    if i == 0:
+        raise ValueError(f"OBJ {what} indices start at 1 (0 is invalid)")
+    return i - 1 if i > 0 else count + i
+
+
 def _read_obj(path: str) -> MeshData:
-    verts, norms, polys = [], [], []
+    """Wavefront OBJ: `v`, `vn` and `f` with corners `v`, `v/vt`, `v//vn` or `v/vt/vn`. Normals are read by each
+    corner's normal index (as the OBJ format and Mitsuba do), so a vertex may have different normals in different
+    faces; a file whose faces give no normal index (or only some of them do) has no normals (flat shading)."""
+    verts, norms, polys, npolys = [], [], [], []
     with open(path, encoding="utf-8", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             parts = line.split()
@@ -86,27 +106,32 @@ def _read_obj(path: str) -> MeshData:
             tag = parts[0]
             try:
                 if tag == "v":
-                    verts.append([float(x) for x in parts[1:4]])
                     if len(parts) < 4:
                         raise ValueError("a vertex needs 3 coordinates")
+                    verts.append([float(x) for x in parts[1:4]])
                 elif tag == "vn":
+                    if len(parts) < 4:
+                        raise ValueError("a normal needs 3 coordinates")
                     norms.append([float(x) for x in parts[1:4]])
                 elif tag == "f":
                     if len(parts) < 4:
                         raise ValueError("a face needs at least 3 vertices")
-                    idx = []
+                    idx, nidx = [], []
                     for tok in parts[1:]:
-                        i = int(tok.split("/")[0])
-                        if i == 0:
-                            raise ValueError("OBJ indices start at 1 (0 is invalid)")
-                        idx.append(i - 1 if i > 0 else len(verts) + i)  # negative: relative to the vertices so far
+                        fields = tok.split("/")
+                        idx.append(_obj_index(fields[0], len(verts), "vertex"))
+                        has_n = len(fields) >= 3 and fields[2] != ""
+                        nidx.append(_obj_index(fields[2], len(norms), "normal") if has_n else None)
                     polys.append(idx)
+                    npolys.append(nidx)
             except ValueError as e:
                 raise MeshError(f"{path}: line {lineno}: cannot parse {line.strip()!r}: {e}") from None
     v = np.asarray(verts, np.float64).reshape(-1, 3)
     f = np.asarray(_fan(polys), np.int64).reshape(-1, 3)
-    n = np.asarray(norms, np.float64).reshape(-1, 3) if len(norms) == len(verts) and norms else None
-    return MeshData(v, f, n)
+    if norms and npolys and all(i is not None for p in npolys for i in p):
+        return MeshData(v, f, np.asarray(norms, np.float64).reshape(-1, 3),
+                        np.asarray(_fan(npolys), np.int64).reshape(-1, 3))
+    return MeshData(v, f, None)
 
 
 _PLY_TYPES = {
@@ -116,17 +141,28 @@ _PLY_TYPES = {
 }
 
 
-def _read_ply(path: str) -> MeshData:
-    with open(path, "rb") as fh:
-        raw = fh.read()
+def _ply_header(raw: bytes, path: str):
+    """`(format, elements, body_start)` of a PLY file; `elements`: `[name, count, [(name, dtype) or (name,
+    (count_dtype, item_dtype))]]`. Counts must be integers >= 0; a header may end with `end_header` and no newline
+    (then no data follows)."""
     if not raw.startswith(b"ply"):
         raise MeshError(f"{path}: not a PLY file (no 'ply' magic)")
-    end = raw.find(b"end_header")
-    if end < 0:
-        raise MeshError(f"{path}: PLY header has no end_header")
-    body_start = raw.index(b"\n", end) + 1
+    end = raw.find(b"\nend_header") + 1
+    if end < 1:
+        raise MeshError(f"{path}: PLY header has no end_header line")
+    after = end + len(b"end_header")
+    rest = raw[after:after + 2]
+    if rest.startswith(b"\n"):
+        body_start = after + 1
+    elif rest == b"\r\n":
+        body_start = after + 2
+    elif rest == b"":  # `end_header` as the file's last bytes: a header with no data
+        body_start = after
+    else:
+        raise MeshError(f"{path}: PLY header's end_header is followed by {raw[after:after + 8]!r}, not a newline; "
+                        f"expected end_header on a line of its own")
     header = raw[:end].decode("ascii", errors="replace").splitlines()
-    fmt, elements = None, []  # elements: [name, count, [(name, dtype) or (name, (count_dtype, item_dtype))]]
+    fmt, elements = None, []
     for line in header[1:]:
         p = line.split()
         if not p or p[0] in ("comment", "obj_info"):
@@ -145,6 +181,33 @@ def _read_ply(path: str) -> MeshData:
             raise MeshError(f"{path}: cannot parse PLY header line {line!r}") from None
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise MeshError(f"{path}: unknown PLY format {fmt!r}")
+    for name, count, props in elements:
+        if count < 0:
+            raise MeshError(f"{path}: PLY header line 'element {name} {count}': the count {count} is negative; "
+                            f"expected an integer >= 0")
+        for pname, dt in props:
+            if name == "face" and pname in ("vertex_indices", "vertex_index") and (
+                    not isinstance(dt, tuple) or dt[1].startswith("f")):
+                raise MeshError(f"{path}: PLY face property {pname} is not a list of integers; expected e.g. "
+                                f"'property list uchar int {pname}'")
+    # each record takes at least this many bytes (binary: its fixed part; ASCII: one digit and a separator per
+    # value), so a count the data cannot hold (10^20) is refused before anything is allocated or looped over
+    size = len(raw) - body_start
+    for name, count, props in elements:
+        per = sum(np.dtype(dt[0] if isinstance(dt, tuple) else dt).itemsize for _, dt in props) if fmt != "ascii" \
+            else 2 * len(props)
+        slack = 1 if fmt == "ascii" else 0  # the last ASCII value needs no separator after it
+        if count * per > size + slack:
+            raise MeshError(f"{path}: PLY header declares {count} {name} records, but the file's {size} bytes of data "
+                            f"hold at most {(size + slack) // max(per, 1)}; the file is cut short or the count is "
+                            f"wrong")
+    return fmt, elements, body_start
+
+
+def _read_ply(path: str) -> MeshData:
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    fmt, elements, body_start = _ply_header(raw, path)
     data = {}
     if fmt == "ascii":
         tokens = raw[body_start:].split()
@@ -152,20 +215,31 @@ def _read_ply(path: str) -> MeshData:
         try:
             for name, count, props in elements:
                 rows = []
-                for _ in range(count):
+                for r in range(count):
                     row = {}
                     for pname, dt in props:
                         if isinstance(dt, tuple):
                             k = int(tokens[pos])
-                            row[pname] = [float(x) for x in tokens[pos + 1:pos + 1 + k]]
+                            if k < 0 or pos + 1 + k > len(tokens):
+                                raise MeshError(f"{path}: PLY data ends inside {name} {r} of {count} ({pname} "
+                                                f"declares {k} values, {len(tokens) - pos - 1} remain); expected "
+                                                f"{count} complete {name} records")
+                            item = int if dt[1][0] in "iu" else float
+                            row[pname] = [item(x) for x in tokens[pos + 1:pos + 1 + k]]
                             pos += 1 + k
                         else:
                             row[pname] = float(tokens[pos])
                             pos += 1
                     rows.append(row)
                 data[name] = rows
-        except (IndexError, ValueError):
-            raise MeshError(f"{path}: PLY data ends early or holds a non-number") from None
+        except (IndexError, ValueError) as e:
+            if isinstance(e, MeshError):
+                raise
+            raise MeshError(f"{path}: PLY data ends early or holds a non-number (at value {pos + 1}); expected "
+                            f"{', '.join(f'{c} {n} records' for n, c, _ in elements)}") from None
+        if pos < len(tokens):
+            raise MeshError(f"{path}: PLY data has {len(tokens) - pos} values after the records the header declares "
+                            f"({', '.join(f'{c} {n}' for n, c, _ in elements)}); expected exactly the declared counts")
         verts = data.get("vertex", [])
         v = np.array([[r.get("x", np.nan), r.get("y", np.nan), r.get("z", np.nan)] for r in verts], np.float64)
         has_n = bool(verts) and all(k in verts[0] for k in ("nx", "ny", "nz"))
@@ -193,7 +267,11 @@ def _read_ply(path: str) -> MeshData:
                     key = "vertex_indices" if "vertex_indices" in lists else "vertex_index"
                     polys = lists.get(key, [])
         except (ValueError, KeyError):
-            raise MeshError(f"{path}: PLY data ends early or is malformed") from None
+            raise MeshError(f"{path}: PLY data ends early or is malformed; expected "
+                            f"{', '.join(f'{c} {n} records' for n, c, _ in elements)}") from None
+        if pos < len(buf):
+            raise MeshError(f"{path}: PLY data has {len(buf) - pos} bytes after the records the header declares "
+                            f"({', '.join(f'{c} {n}' for n, c, _ in elements)}); expected exactly the declared counts")
         if v is None:
             v = np.zeros((0, 3))
     faces = polys if isinstance(polys, np.ndarray) else np.asarray(_fan(polys), np.int64).reshape(-1, 3)
@@ -202,7 +280,7 @@ def _read_ply(path: str) -> MeshData:
 
 def _read_binary_lists(buf, pos, count, props, bo):
     """Binary PLY element with list properties. Fast path: every list has the same length as the first record's
-    (all triangles); otherwise record by record."""
+    (all triangles); otherwise record by record. A negative list length is malformed (ValueError)."""
     out = {}
     # fast path: fixed-length lists, checked afterwards
     fields, k0, p = [], {}, pos
@@ -210,6 +288,8 @@ def _read_binary_lists(buf, pos, count, props, bo):
         if isinstance(dt, tuple):
             cdt, idt = dt
             k = int(np.frombuffer(buf, bo + cdt, 1, p)[0]) if count else 0
+            if k < 0:
+                raise ValueError("negative list length")
             k0[pname] = k
             fields += [(pname + "__n", bo + cdt), (pname, bo + idt, (k,))]
             p += np.dtype(cdt).itemsize + k * np.dtype(idt).itemsize
@@ -230,6 +310,8 @@ def _read_binary_lists(buf, pos, count, props, bo):
             if isinstance(dt, tuple):
                 cdt, idt = dt
                 k = int(np.frombuffer(buf, bo + cdt, 1, pos)[0])
+                if k < 0:
+                    raise ValueError("negative list length")
                 pos += np.dtype(cdt).itemsize
                 lists[pname].append(np.frombuffer(buf, bo + idt, k, pos).astype(np.int64).tolist())
                 pos += k * np.dtype(idt).itemsize
@@ -304,8 +386,22 @@ def validate_mesh(mesh: MeshData, path: str = "<mesh>") -> None:
         i = int(np.argmax(degenerate))
         raise MeshError(f"{path}: {int(degenerate.sum())} of {f.shape[0]} faces are degenerate (zero area; first: "
                         f"face {i}, vertices {f[i].tolist()}); remove them from the file")
-    if mesh.normals is not None and not np.all(np.isfinite(mesh.normals)):
-        raise MeshError(f"{path}: vertex normals are not finite")
+    if mesh.normals is not None:
+        if not np.all(np.isfinite(mesh.normals)):
+            raise MeshError(f"{path}: vertex normals are not finite")
+        nf = mesh.normal_faces
+        if nf is None and mesh.normals.shape[0] != v.shape[0]:
+            raise MeshError(f"{path}: {mesh.normals.shape[0]} vertex normals for {v.shape[0]} vertices; expected one "
+                            f"normal per vertex")
+        if nf is not None:
+            if nf.shape != f.shape:
+                raise MeshError(f"{path}: normal indices of shape {nf.shape} for faces of shape {f.shape}; expected "
+                                f"one normal index per face corner")
+            out = (nf < 0) | (nf >= mesh.normals.shape[0])
+            if out.any():
+                i = int(np.argmax(out.any(axis=1)))
+                raise MeshError(f"{path}: face {i} has normal indices {nf[i].tolist()} out of range "
+                                f"[0, {mesh.normals.shape[0] - 1}]")
 
 
 def write_ply(path, vertices, faces, normals=None) -> None:
@@ -370,8 +466,10 @@ def apply_transform(mesh: MeshData, m: np.ndarray) -> MeshData:
     if mesh.normals is not None:
         n = mesh.normals @ np.linalg.inv(m[:3, :3])
         n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    f = mesh.faces if np.linalg.det(m[:3, :3]) > 0 else mesh.faces[:, ::-1]
-    return MeshData(v, f, n)
+    keep = np.linalg.det(m[:3, :3]) > 0
+    f = mesh.faces if keep else mesh.faces[:, ::-1]
+    nf = mesh.normal_faces if keep or mesh.normal_faces is None else mesh.normal_faces[:, ::-1]
+    return MeshData(v, f, n, nf)
 
 
 # -------------------------------------------------------------------------------------------------------- the BVH
@@ -497,6 +595,27 @@ def build_bvh(tris) -> BVH:
 
 
 # -------------------------------------------------------------------------------------------------------- the Module
+def _array_arg(x, name: str, path: str, kind) -> np.ndarray:
+    """`Mesh.from_arrays`' argument `name` as an (n, 3) float64 (`kind` float) or int64 (`kind` int) array, or a
+    `MeshError` naming it, the shape or type it has and what is valid: no reshaping (a (6, 2) array is not 4
+    vertices) and no truncation (face index 1.5 is not 1)."""
+    what = "an (n, 3) array of numbers" if kind is float else "an (n, 3) array of integers"
+    try:
+        a = np.asarray(x)
+    except (TypeError, ValueError):
+        raise MeshError(f"{path}: {name}: got {type(x).__name__}; expected {what}") from None
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise MeshError(f"{path}: {name} has shape {a.shape}; expected {what} (shape (n, 3))")
+    if kind is int:
+        if a.dtype == bool or not np.issubdtype(a.dtype, np.integer):
+            raise MeshError(f"{path}: {name} has dtype {a.dtype}; expected {what} (indices: a float index would be "
+                            f"truncated)")
+        return a.astype(np.int64)
+    if a.dtype == bool or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise MeshError(f"{path}: {name} has dtype {a.dtype}; expected {what}")
+    return a.astype(np.float64)
+
+
 class Mesh(eqx.Module):
     """A triangle mesh with its BVH and its `bsdf` (any BSDF; one-sided BSDFs work on the front faces, which are
     counter-clockwise seen from the front).
@@ -532,11 +651,15 @@ class Mesh(eqx.Module):
 
     @classmethod
     def from_arrays(cls, vertices, faces, bsdf, normals=None, smooth: bool = False,
-                    path: str = "<mesh>") -> "Mesh":
-        """A mesh from world-space `vertices` (V, 3), `faces` (F, 3) and optional vertex `normals` (V, 3); smooth
-        shading normals when `smooth` and normals are given (else flat). Validated (`MeshError`)."""
-        data = MeshData(np.asarray(vertices, np.float64).reshape(-1, 3), np.asarray(faces, np.int64).reshape(-1, 3),
-                        None if normals is None else np.asarray(normals, np.float64).reshape(-1, 3))
+                    path: str = "Mesh.from_arrays", normal_faces=None) -> "Mesh":
+        """A mesh from world-space `vertices` (V, 3) floats, `faces` (F, 3) integers (indices into `vertices`,
+        counter-clockwise = front) and optional `normals`: (V, 3), one per vertex, or (N, 3) with `normal_faces`
+        (F, 3) integers, each face corner's index into `normals` (an OBJ's `f v//vn`). Smooth shading normals when
+        `smooth` and normals are given (else flat). Validated: a `MeshError` names `path` (or the argument), the
+        value and what is valid."""
+        data = MeshData(_array_arg(vertices, "vertices", path, float), _array_arg(faces, "faces", path, int),
+                        None if normals is None else _array_arg(normals, "normals", path, float),
+                        None if normal_faces is None else _array_arg(normal_faces, "normal_faces", path, int))
         validate_mesh(data, path)
         if smooth and data.normals is None:
             raise MeshError(f"{path}: smooth shading needs vertex normals, and the mesh has none")
@@ -554,7 +677,8 @@ class Mesh(eqx.Module):
             x = np.where(slot_ok[:, None, None], x.astype(np.float32)[safe], 0.0).astype(np.float32)
             return jnp.asarray(np.ascontiguousarray(x.reshape(-1, WIDTH, 3, 3).transpose(0, 2, 3, 1)))
 
-        vn = per_leaf(data.normals[faces]) if smooth else None
+        nf = data.faces if data.normal_faces is None else data.normal_faces
+        vn = per_leaf(data.normals[np.take_along_axis(nf, perm, axis=1)]) if smooth else None
         w = np.where(slot_ok, wind[safe], 1.0).astype(np.float32).reshape(-1, WIDTH)
         return cls(rows=jnp.asarray(bvh.rows), vn=vn, wind=jnp.asarray(w),
                    face=jnp.asarray(bvh.order.astype(np.int32)), bsdf=bsdf, root=bvh.root, box=bvh.box,
@@ -568,7 +692,8 @@ class Mesh(eqx.Module):
         data = read_mesh_cached(path)
         m = to_world if isinstance(to_world, np.ndarray) else transform_matrix(to_world)
         data = apply_transform(data, m)
-        return cls.from_arrays(data.vertices, data.faces, bsdf, data.normals, smooth, os.fspath(path))
+        return cls.from_arrays(data.vertices, data.faces, bsdf, data.normals, smooth, os.fspath(path),
+                               normal_faces=data.normal_faces)
 
 
 # ------------------------------------------------------------------------------------------------- intersection

@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._bsdf import AbstractBSDF
 from ._math import cross, dot_unrolled, safe_normalize, safe_sqrt
+from ._validate import POSITIVE, check_range, check_vector, concrete_values
 
 T_MIN = 1e-4
 """Smallest accepted hit distance (scene units): avoids re-hitting the surface a ray starts on."""
@@ -24,16 +26,38 @@ def _scalar(x) -> Float[Array, ""]:
     return jnp.asarray(x, dtype=jnp.float32).reshape(())
 
 
+PERPENDICULAR_TOLERANCE = 1e-5
+"""Largest `|dot(edge_u, edge_v)| / (|edge_u| |edge_v|)` of a rectangle's edges (float32 edges of a rotated
+rectangle are perpendicular to ~1e-7; the scene files check their float64 values to 1e-6)."""
+
+
+def check_perpendicular(owner: str, edge_u, edge_v) -> None:
+    """Raise `ValueError` unless the (concrete) edges are perpendicular to `PERPENDICULAR_TOLERANCE`."""
+    vals = concrete_values(edge_u, edge_v)
+    if vals is None:
+        return
+    u, v = vals
+    d = float(u @ v)
+    if abs(d) > PERPENDICULAR_TOLERANCE * float(np.linalg.norm(u) * np.linalg.norm(v)):
+        raise ValueError(f"{owner}.edge_v = {v.tolist()} is not perpendicular to edge_u = {u.tolist()} (dot product "
+                         f"{d:.6g}); expected dot(edge_u, edge_v) = 0 (relative tolerance {PERPENDICULAR_TOLERANCE:g})")
+
+
 class Sphere(eqx.Module):
-    """A sphere: `center` (3-vector, scene units), `radius` (> 0, scene units) and its `bsdf`."""
+    """A sphere: `center` (3-vector, scene units, finite), `radius` (> 0, scene units) and its `bsdf`."""
 
     center: Float[Array, "3"] = eqx.field(converter=_vec3)
     radius: Float[Array, ""] = eqx.field(converter=_scalar)
     bsdf: AbstractBSDF
 
+    def __check_init__(self):
+        check_vector("Sphere", "center", self.center, nonzero=False)
+        check_range("Sphere", "radius", self.radius, POSITIVE)
+
 
 class Rectangle(eqx.Module):
-    """A rectangle: `center`, perpendicular full edge vectors `edge_u`, `edge_v` (scene units) and its `bsdf`.
+    """A rectangle: `center`, perpendicular full edge vectors `edge_u`, `edge_v` (scene units; finite, non-zero) and
+    its `bsdf`.
 
     Its front face (the side a one-sided BSDF or emitter works on) faces `normalize(cross(edge_u, edge_v))`.
     """
@@ -42,6 +66,12 @@ class Rectangle(eqx.Module):
     edge_u: Float[Array, "3"] = eqx.field(converter=_vec3)
     edge_v: Float[Array, "3"] = eqx.field(converter=_vec3)
     bsdf: AbstractBSDF
+
+    def __check_init__(self):
+        check_vector("Rectangle", "center", self.center, nonzero=False)
+        check_vector("Rectangle", "edge_u", self.edge_u)
+        check_vector("Rectangle", "edge_v", self.edge_v)
+        check_perpendicular("Rectangle", self.edge_u, self.edge_v)
 
     @property
     def normal(self) -> Float[Array, "3"]:
