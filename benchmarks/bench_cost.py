@@ -37,7 +37,7 @@ import numpy as np
 
 from benchmarks.common import REPO, machine_info, scene_path, subprocess_env, write_json
 
-OUT = REPO / "docs" / "results" / "bench" / "cost"
+OUT = REPO / "bench_out" / "cost"
 CONFIGS = {
     "jaxfog default": {},
     "jaxfog, Mitsuba's techniques": {"equiangular": False, "light_lobe": 0.0, "distance_mix": 0.0},
@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mitsuba-spp", type=int, default=64, help="Mitsuba spp per render (default 64)")
     p.add_argument("--mitsuba-variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
     p.add_argument("--no-mitsuba", action="store_true", help="jaxfog rows only")
-    p.add_argument("--out", default=str(OUT), help="output folder (default docs/results/bench/cost)")
+    p.add_argument("--out", default=str(OUT), help="output folder (default bench_out/cost)")
     p.add_argument("--pool", nargs="+", metavar="COST_JSON",
                    help="no run: pool the block pairs of these earlier runs' cost.json files and print the ratios")
     args = p.parse_args(argv)

@@ -27,7 +27,7 @@ from .common import REPO, load, machine_info, write_json
 
 sys.path.insert(0, str(REPO / "data_synthetic"))
 
-DEFAULT_JSON = REPO / "docs" / "results" / "mesh" / "bench_mesh.json"
+DEFAULT_JSON = REPO / "bench_out" / "mesh" / "bench_mesh.json"
 
 
 def _grid(n_tris: int) -> tuple[int, int]:

@@ -32,7 +32,7 @@ from jaxfog._integrator import n_dims, n_iterations
 from jaxfog._random import uniforms
 
 SCENE = "spot_fog"
-OUT = REPO / "docs" / "results" / "bench" / "profile"
+OUT = REPO / "bench_out" / "profile"
 
 
 def _configs(quick: bool):
@@ -77,7 +77,7 @@ def _rng_fn(scene, spp):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="few configurations, 4 spp, 2 repetitions (a smoke test)")
-    ap.add_argument("--out", default=str(OUT), help="output folder (default docs/results/bench/profile in the repository)")
+    ap.add_argument("--out", default=str(OUT), help="output folder (default bench_out/profile in the repository)")
     ap.add_argument("--scene", default=SCENE, help="a shipped scene's name or a .json path (default spot_fog)")
     ap.add_argument("--spp", type=int, default=None, help="samples per pixel per timing (default 16; quick 4)")
     ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; quick 2)")

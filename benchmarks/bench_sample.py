@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-OUT = REPO / "docs" / "results" / "bench" / "sample"
+OUT = REPO / "bench_out" / "sample"
 SCENE = REPO / "data_synthetic" / "scenes" / "spot_fog.json"
 TECHNIQUES = {"equiangular": False, "light_lobe": 0.0, "distance_mix": 0.0}
 """Mitsuba's techniques only: free flight, phase / BSDF sampling, one light sample per vertex."""

@@ -1,4 +1,4 @@
-"""docs/results/phase_functions.png: issue 14's phase functions against HG at matched E[cos] (log scale over theta).
+"""docs/results/phase_functions.png: two-term HG, Draine, Rayleigh and droplets against HG at matched E[cos].
 
     PYTHONPATH=. python docs/results/plot_phase_functions.py
 """

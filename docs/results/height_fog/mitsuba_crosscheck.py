@@ -119,7 +119,7 @@ def main() -> int:
     ap.add_argument("--mitsuba-keys", type=int, default=256, help="Mitsuba images per grid")
     ap.add_argument("--grid-keys", type=int, default=8, help="jaxfog image pairs for the grid-effect prediction")
     ap.add_argument("--grids", type=int, nargs=2, default=(49, 193))
-    ap.add_argument("--out", default="docs/results/height_fog")
+    ap.add_argument("--out", default="bench_out/height_fog", help="output folder for crosscheck.json")
     ap.add_argument("--variant", default="scalar_rgb",
                     help="Mitsuba variant (default scalar_rgb: llvm_ad_rgb aborts in LLVM instruction selection "
                          "('Cannot select: fminimum') on this machine's libLLVM for the heterogeneous medium)")
@@ -212,6 +212,7 @@ def main() -> int:
             print("    z:", np.round(np.asarray(g["regions_z"]).reshape(4, 4), 2).tolist())
         print(f"  m_{coarse} - m_{fine}: measured {disc_meas.mean():.3g} (rel {disc_meas.mean() / mj.mean():+.3%}), "
               f"predicted {pred_diff.mean():.3g}; per region z {np.round(z_disc, 2).tolist()}", flush=True)
+    os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "crosscheck.json"), "w") as fh:
         json.dump(report, fh, indent=1)
     return 0
