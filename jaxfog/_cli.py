@@ -45,20 +45,11 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _int(text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-
-
 def _float(text: str) -> float:
     try:
         return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-
-
 
 
 EXPOSURE_RANGE = (-100.0, 100.0)
@@ -103,7 +94,8 @@ def _same_file(a: str, b: str) -> bool:
 
 def _check_output(path: str, ext: str, option: str, inputs=()) -> None:
     """Refuse, before any work, an output that cannot be written or would destroy something: a wrong extension, a
-    directory, one of the `inputs` (e.g. the scene file), a missing or unwritable directory."""
+    directory, one of the `inputs` (e.g. the scene file), a missing or unwritable directory, an existing read-only
+    file (`_validate.read_only`: also one without write permission bits, which the superuser could replace)."""
     if not path.lower().endswith(ext):
         raise CliError(f"{option} {path}: expected a {ext} file name")
     if os.path.isdir(path):
@@ -114,11 +106,15 @@ def _check_output(path: str, ext: str, option: str, inputs=()) -> None:
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
         raise CliError(f"{option} {path}: directory {directory} does not exist")
-    if not os.access(directory, os.W_OK | os.X_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+    if not os.access(directory, os.W_OK | os.X_OK):
         raise CliError(f"{option} {path}: not writable (no permission to write in {directory})")
+    if read_only(path):
+        raise CliError(f"{option} {path}: the file is read-only; expected a writable file or a new name (make it "
+                       f"writable to replace it)")
 
 
 from ._measure import CompileTimer as _CompileTimer  # noqa: E402
+from ._validate import read_only
 from ._validate import seed_argument as _seed
 
 
@@ -135,6 +131,7 @@ def _run_render(args: argparse.Namespace) -> int:
     spp = args.spp if args.spp is not None else sf.spp
     base = os.path.basename(sf.path)
     check_size(sf.scene.camera.width, sf.scene.camera.height, spp, sf.scene.max_depth, force=args.force,
+               rr_depth=sf.scene.rr_depth,
                names=dict(width=f"{base}: camera.width", height="camera.height",
                           spp="--spp" if args.spp is not None else f"{base}: integrator.spp",
                           max_depth=f"{base}: integrator.max_depth"),
@@ -169,27 +166,23 @@ def _run_render(args: argparse.Namespace) -> int:
         "jaxfog:scene_json": json.dumps(sf.data),
         "jaxfog:version": _version(),
     }
+    from ._validate import check_finite
+
+    try:  # before anything is written: a failed render never replaces an existing image
+        check_finite(image, args.output)
+    except FloatingPointError as e:
+        kept = "; the existing file is unchanged" if os.path.exists(args.output) else ""
+        raise CliError(f"{e}; nothing written{kept} (a parameter at the edge of float32?)") from None
     write_exr(args.output, image, metadata)
     written = [args.output]
     if args.png:
         write_png(args.png, image, exposure=args.exposure)
         written.append(args.png)
-    n_bad = int(np.sum(~np.isfinite(image)))
-    print(
-        f"{sf.name}: {cam.width}x{cam.height}, {spp} spp, seed {args.seed}: mean pixel {float(np.nanmean(image)):.4g}"
-        + (f", {n_bad} non-finite values" if n_bad else "")
-    )
+    mean = float(np.mean(image, dtype=np.float64))  # float64: a float32 sum of finite values near 3e38 overflows
+    print(f"{sf.name}: {cam.width}x{cam.height}, {spp} spp, seed {args.seed}: mean pixel {mean:.4g}")
     print(f"wrote {', '.join(written)}")
     print(f"compile {compile_timer.seconds:.2f} s, wall {wall:.2f} s "
           f"(render {max(wall - compile_timer.seconds, 0.0):.2f} s)")
-    if n_bad:
-        from ._validate import check_finite
-
-        try:
-            check_finite(image, args.output)
-        except FloatingPointError as e:
-            raise CliError(f"{e}; the image was written for inspection, but it is not a valid render "
-                           f"(a parameter at the edge of float32?)") from None
     return 0
 
 

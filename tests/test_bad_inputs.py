@@ -1,4 +1,4 @@
-"""Every bad input is refused (issue 13, item 5): one row per kind of bad input, for the render command line, the fit
+"""Every bad input is refused: one row per kind of bad input, for the render command line, the fit
 command line and the Python API. Each row checks the exit code (2 for a usage error, 1 for a bad file) or the
 exception, that the one-line message names the file / key / argument and quotes the value and the valid range, and
 that the refusal comes before any work: the renderer and the fit are replaced by functions that fail the test if
@@ -109,8 +109,9 @@ def test_render_cli_force_lifts_the_limits(tmp_path, capsys, monkeypatch):
     assert cli_main(argv) == 0
 
 
-def test_render_cli_non_finite_image_exits_non_zero(tmp_path, capsys, monkeypatch):
-    """A render with non-finite pixels is written (for inspection) but the command exits 1 and says so."""
+def test_render_cli_non_finite_image_exits_non_zero_and_writes_nothing(tmp_path, capsys, monkeypatch):
+    """A render with non-finite pixels exits 1 and says so, and writes nothing: an existing valid image (and PNG)
+    at the output path is kept as it was, not replaced by the NaN image."""
 
     def nan_image(scene, key, spp, **kw):
         img = np.full((scene.camera.height, scene.camera.width, 3), 0.5, np.float32)
@@ -119,11 +120,40 @@ def test_render_cli_non_finite_image_exits_non_zero(tmp_path, capsys, monkeypatc
         return img
 
     monkeypatch.setattr(_render, "render", nan_image)
-    out = tmp_path / "nan.exr"
-    assert cli_main(["render", str(SPOT_FOG), "-o", str(out), *TINY]) == 1
+    out, png = tmp_path / "nan.exr", tmp_path / "nan.png"
+    assert cli_main(["render", str(SPOT_FOG), "-o", str(out), "--png", str(png), *TINY]) == 1
     err = _one_line_error(capsys)
     assert f"{out}: 2 of 48 values are not finite (1 NaN, 1 infinite; first at index (1, 2, 0))" in err
-    assert out.exists()
+    assert "nothing written" in err
+    assert not out.exists() and not png.exists()
+    good = np.full((4, 4, 3), 0.25, np.float32)
+    jaxfog.write_exr(out, good)
+    jaxfog.write_png(png, good)
+    before = png.read_bytes()
+    assert cli_main(["render", str(SPOT_FOG), "-o", str(out), "--png", str(png), *TINY]) == 1
+    assert "nothing written; the existing file is unchanged" in _one_line_error(capsys)
+    np.testing.assert_array_equal(jaxfog.read_exr(out)[0], good)
+    assert png.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["nan.exr", "nan.png"]  # no temp files left
+
+
+def test_render_cli_mean_pixel_of_a_bright_finite_image(tmp_path, capsys, monkeypatch):
+    """A finite image near float32's maximum (irradiance 3e38): the printed mean is computed in float64, not inf."""
+    monkeypatch.setattr(_render, "render", lambda scene, key, spp, **kw: np.full(
+        (scene.camera.height, scene.camera.width, 3), 3e38, np.float32))
+    assert cli_main(["render", str(SPOT_FOG), "-o", str(tmp_path / "b.exr"), *TINY]) == 0
+    assert "mean pixel 3e+38" in capsys.readouterr().out
+
+
+def test_render_cli_refuses_a_read_only_output(tmp_path, capsys, no_render):
+    """An existing output without write permission is refused before any work (also for the superuser, whom
+    `os.access` lets write anything), and kept."""
+    out = tmp_path / "ro.exr"
+    jaxfog.write_exr(out, np.full((2, 2, 3), 0.5, np.float32))
+    out.chmod(0o444)
+    assert cli_main(["render", str(SPOT_FOG), "-o", str(out), *TINY]) == 1
+    assert f"-o {out}: the file is read-only" in _one_line_error(capsys)
+    np.testing.assert_array_equal(jaxfog.read_exr(out)[0], 0.5)
 
 
 def test_max_depth_1_renders_the_lights_seen_directly():
@@ -318,7 +348,7 @@ def test_use_cpu_cores_warns_when_too_late():
         assert jaxfog.use_cpu_cores(n) == n
 
 
-# ------------------------------------------------- Module validation (lands with the architecture change, issue 12)
+# ---------------------------------------------------------------------------------------------- Module validation
 MODULE_ROWS = [("g = 1", dict(g=1.0)), ("g = 1.5", dict(g=1.5)), ("sigma_t = -1", dict(sigma_t=-1.0)),
                ("albedo = 2", dict(albedo=2.0))]
 
