@@ -13,6 +13,9 @@
 | `sigma_0` | height fog: extinction at the base height, 1/scene unit, all channels | `log sigma_0` |
 | `height_scale` | height fog: scale height H, scene units | `log H` |
 | `base_height` | height fog: base height h_0, scene units (degenerate with sigma_0) | `h_0` |
+| `exposure` | the camera's factor on the scene's radiance, every target (photographs: `fitting.photo`) | `log` |
+| `exposure[r]`, `exposure[g]`, `exposure[b]` | one channel's factor, every target (`exposure:rgb`: white balance) | `log` |
+| `exposure@1` ... `exposure@8` | the factor of one target only (targets counted from 1, as given) | `log` |
 
 Each parameter is a `ParamSpec` in `SPECS`: a `Transform` to the unconstrained coordinate and `get` / `set` on a
 scene; parameters of the medium or its phase function are made with `medium_param`.
@@ -204,7 +207,38 @@ SPECS.update({
     "diameter": medium_param("diameter", interval(5.0, 50.0), 5.0, 50.0, "µm", search=(5.5, 45.0)),
 })
 
-EXPANSIONS = {f"{f}:rgb": [f"{f}[{c}]" for c in CHANNELS] for f in ("sigma_t", "albedo")}
+# the camera: target = curve(exposure x render). Not a scene's parameter: `set` leaves the scene as it is, and
+# `gains` gives each view's factor; a scene's "value" (the start) is 1.
+MAX_VIEWS = 8
+
+
+def _camera_param(name: str) -> ParamSpec:
+    return ParamSpec(name, LOG, 0.0, np.inf, "", lambda scene: 1.0, lambda scene, value: scene, "power")
+
+
+SPECS["exposure"] = _camera_param("exposure")
+SPECS.update({f"exposure[{c}]": _camera_param(f"exposure[{c}]") for c in CHANNELS})
+SPECS.update({f"exposure@{v}": _camera_param(f"exposure@{v}") for v in range(1, MAX_VIEWS + 1)})
+CAMERA_PARAMS = frozenset(n for n in SPECS if n.startswith("exposure"))
+
+
+def gains(values: dict, view: int):
+    """The RGB factor `(3,)` on view `view`'s (0-based) render: the product of `exposure`, `exposure[c]` and
+    `exposure@{view + 1}` where fitted; None where no camera parameter is."""
+    if not CAMERA_PARAMS & set(values):
+        return None
+    g = jnp.ones(3)
+    if "exposure" in values:
+        g = g * values["exposure"]
+    for c, ch in enumerate(CHANNELS):
+        if f"exposure[{ch}]" in values:
+            g = g.at[c].multiply(values[f"exposure[{ch}]"])
+    if f"exposure@{view + 1}" in values:
+        g = g * values[f"exposure@{view + 1}"]
+    return g
+
+
+EXPANSIONS = {f"{f}:rgb": [f"{f}[{c}]" for c in CHANNELS] for f in ("sigma_t", "albedo", "exposure")}
 """Names that stand for several parameters: `sigma_t:rgb` is `sigma_t[r] sigma_t[g] sigma_t[b]`."""
 
 
@@ -218,6 +252,14 @@ def check_names(names) -> list[str]:
             raise FitError(f"unknown parameter {n!r}; valid: {', '.join([*SPECS, *EXPANSIONS])}")
     if len(set(names)) != len(names):
         raise FitError(f"parameter names repeat: {names}")
+    camera = [n for n in names if n in CAMERA_PARAMS]
+    if camera and "intensity" in names:
+        raise FitError(f"--fit {' '.join(camera)} intensity: the camera's exposure and the light's intensity scale "
+                       f"the images alike, so no target determines them apart; fit one of them")
+    if "exposure" in names and len(camera) > 1:
+        raise FitError(f"--fit {' '.join(camera)}: `exposure` scales every channel of every target, and "
+                       f"{', '.join(n for n in camera if n != 'exposure')} scale(s) a part of them: together they are "
+                       f"not determined apart; fit `exposure` or the parts")
     return names
 
 

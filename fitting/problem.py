@@ -26,7 +26,7 @@ import numpy as np
 
 import jaxfog
 
-from .params import FitError, apply, from_unconstrained, jacobian_to_params, to_unconstrained
+from .params import FitError, apply, from_unconstrained, gains, jacobian_to_params, to_unconstrained
 
 
 class View(NamedTuple):
@@ -34,7 +34,9 @@ class View(NamedTuple):
     target's noise.
 
     `target_spp`: samples per pixel of a jaxfog target (its header), else None; `target_var`: per-pixel variance of the
-    pooled target estimated from the full-resolution target itself (`block_noise`); `downscale`: the pooling factor."""
+    pooled target estimated from the full-resolution target itself (`block_noise`, at least a photograph's
+    quantisation floor); `downscale`: the pooling factor; `valid`: bool `(h, w)`, the pixels that are fitted (None:
+    all; a pooled pixel is valid where all its source pixels are)."""
 
     scene: jaxfog.Scene
     target: np.ndarray
@@ -42,6 +44,7 @@ class View(NamedTuple):
     target_spp: int | None = None
     target_var: np.ndarray | None = None
     downscale: int = 1
+    valid: np.ndarray | None = None
 
 
 def pool(img: np.ndarray, f: int) -> np.ndarray:
@@ -93,8 +96,11 @@ def box_mean(img: np.ndarray, r: int) -> np.ndarray:
     return np.where(ok, tot / np.maximum(cnt, 1), x)
 
 
-def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int = 1, target_spp=None) -> View:
-    """Check the target against the scene's camera and bring both to the fit resolution (1 / `downscale`)."""
+def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int = 1, target_spp=None,
+              valid: np.ndarray | None = None, noise_floor: np.ndarray | None = None) -> View:
+    """Check the target against the scene's camera and bring both to the fit resolution (1 / `downscale`). `valid`
+    (bool `(H, W)`) the pixels to fit (a photograph's, `fitting.photo`); `noise_floor` (`(H, W, 3)`) each value's
+    variance that the target's own block estimate cannot see (quantisation)."""
     cam = scene.camera
     target = np.asarray(target, np.float32)
     if target.ndim != 3 or target.shape[2] != 3:
@@ -109,7 +115,11 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     if np.any(target < 0):
         raise FitError(f"{name}: target has {int(np.sum(target < 0))} negative values (smallest "
                        f"{float(target.min()):.4g}); expected linear radiance >= 0")
-    if not float(np.mean(target)) > 0.0:
+    ok = np.ones(target.shape[:2], bool) if valid is None else np.asarray(valid, bool)
+    if ok.shape != target.shape[:2]:
+        raise FitError(f"{name}: mask is {ok.shape[1]}x{ok.shape[0]} px, the target {target.shape[1]}x"
+                       f"{target.shape[0]} px")
+    if not np.any(ok) or not float(np.mean(target[ok])) > 0.0:
         raise FitError(f"{name}: target is black (every pixel 0): nothing to fit; a target rendered with the light "
                        f"off, or the wrong file?")
     if downscale < 1 or cam.width % downscale or cam.height % downscale:
@@ -117,7 +127,13 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov,
                           width=cam.width // downscale, height=cam.height // downscale)
     scene = eqx.tree_at(lambda s: s.camera, scene, small)
-    return View(scene, pool(target, downscale), name, target_spp, block_noise(target, downscale), downscale)
+    var = block_noise(target, downscale)
+    if noise_floor is not None:
+        var = np.maximum(var, pool(np.asarray(noise_floor, np.float64), downscale) / downscale ** 2)
+    small_ok = None if valid is None else pool(ok[:, :, None].astype(np.float64), downscale)[:, :, 0] >= 1.0
+    if small_ok is not None and not np.any(small_ok):
+        raise FitError(f"{name}: no pixel at the fit resolution (1/{downscale}) is free of masked pixels")
+    return View(scene, pool(target, downscale), name, target_spp, var, downscale, small_ok)
 
 
 @eqx.filter_jit
@@ -126,8 +142,15 @@ def _scan_program(scenes, names, Y, key, spp):
     scene structure, candidate count and spp)."""
     def one(y):
         vals = from_unconstrained(names, y)
-        return [jaxfog.render(apply(s, vals), jax.random.fold_in(key, i), spp) for i, s in enumerate(scenes)]
+        return [_gain(jaxfog.render(apply(s, vals), jax.random.fold_in(key, i), spp), vals, i)
+                for i, s in enumerate(scenes)]
     return jax.vmap(one)(Y)
+
+
+def _gain(img, vals: dict, view: int, power: int = 1):
+    """`img` times the camera's factor on view `view` (`fitting.params.gains`) to `power` (2 for a variance)."""
+    g = gains(vals, view)
+    return img if g is None else img * g ** power
 
 
 class Pass(NamedTuple):
@@ -150,15 +173,18 @@ class Problem:
     def __init__(self, views: list[View], names: list[str]):
         if not views:
             raise FitError("no targets given")
-        for v in views:
-            if not float(np.mean(v.target)) > 0.0:
+        masks = [np.ones(v.target.shape[:2], bool) if v.valid is None else np.asarray(v.valid, bool) for v in views]
+        for v, m in zip(views, masks):
+            if not np.any(m) or not float(np.mean(v.target[m])) > 0.0:
                 raise FitError(f"{v.name}: target is black (every pixel 0): nothing to fit; a target rendered with "
                                f"the light off, or the wrong file?")
         self.views, self.names = views, list(names)
-        self.scales = [float(np.mean(v.target)) for v in views]
+        self.scales = [float(np.mean(v.target[m])) for v, m in zip(views, masks)]
         self.n = sum(v.target.size for v in views)
+        self.valid = np.concatenate([np.repeat(m.ravel(), 3) for m in masks]).astype(np.float64)
+        self.coverage = [float(np.mean(m)) for m in masks]
         self.t = np.concatenate([(np.asarray(v.target, np.float64) / s).ravel()
-                                 for v, s in zip(views, self.scales)]) / math.sqrt(self.n)
+                                 for v, s in zip(views, self.scales)]) / math.sqrt(self.n) * self.valid
         self.pixel_of = np.arange(self.n) // 3
 
     def reference(self, y) -> jaxfog.AbstractMedium | None:
@@ -166,20 +192,24 @@ class Problem:
         med = apply(self.views[0].scene, from_unconstrained(self.names, y)).medium
         return None if med is None else jax.lax.stop_gradient(med)
 
-    def _render(self, view: View, vals: dict, key, spp: int, ref, variance=False):
+    def _render(self, i: int, vals: dict, key, spp: int, ref, variance=False):
+        """View i's render at `vals` (times the camera's factor), "proposal" with reference `ref` where given."""
         kw = {"estimator": "proposal", "proposal": ref} if ref is not None else {}
-        return jaxfog.render(apply(view.scene, vals), key, spp, variance=variance, **kw)
+        out = jaxfog.render(apply(self.views[i].scene, vals), key, spp, variance=variance, **kw)
+        if variance:
+            return _gain(out[0], vals, i), _gain(out[1], vals, i, 2)
+        return _gain(out, vals, i)
 
     def images(self, y, key, spp: int) -> list[np.ndarray]:
         """One render per view at `y` (linear radiance, `(h, w, 3)` each), "proposal" with reference at `y`."""
         ref, vals = self.reference(y), from_unconstrained(self.names, jnp.asarray(y, jnp.float32))
-        return [np.asarray(self._render(v, vals, jax.random.fold_in(key, i), spp, ref), np.float64)
-                for i, v in enumerate(self.views)]
+        return [np.asarray(self._render(i, vals, jax.random.fold_in(key, i), spp, ref), np.float64)
+                for i in range(len(self.views))]
 
     def flat(self, images) -> np.ndarray:
         """Images of every view (linear radiance) as one vector in scaled units."""
         return np.concatenate([(np.asarray(x, np.float64) / s).ravel()
-                               for x, s in zip(images, self.scales)]) / math.sqrt(self.n)
+                               for x, s in zip(images, self.scales)]) / math.sqrt(self.n) * self.valid
 
     def scan(self, Y: np.ndarray, key, spp: int) -> np.ndarray:
         """Renders of every row of `Y` (`(N, k)` unconstrained parameter vectors) with the same key (common random
@@ -195,16 +225,17 @@ class Problem:
 
         def f(yy):
             vals = from_unconstrained(self.names, yy)
-            outs = [self._render(v, vals, jax.random.fold_in(key, i), spp, ref, variance=True)
-                    for i, v in enumerate(self.views)]
+            outs = [self._render(i, vals, jax.random.fold_in(key, i), spp, ref, variance=True)
+                    for i in range(len(self.views))]
             flat = jnp.concatenate([(img / s).ravel() for (img, _), s in zip(outs, self.scales)])
+            flat = flat * jnp.asarray(self.valid, flat.dtype)
             return flat, (jax.lax.stop_gradient(flat), [jax.lax.stop_gradient(var) for _, var in outs])
 
         J, (img, var) = jax.jacfwd(f, has_aux=True)(jnp.asarray(y, jnp.float32))
         root = math.sqrt(self.n)
         e = np.asarray(img, np.float64) / root - self.t
         u = np.concatenate([(np.asarray(v, np.float64) * spp / (s * s)).ravel()
-                            for v, s in zip(var, self.scales)]) / self.n
+                            for v, s in zip(var, self.scales)]) / self.n * self.valid
         return Pass(e, u, np.asarray(J, np.float64) / root, spp)
 
     def target_variance(self, u: np.ndarray | None) -> np.ndarray:

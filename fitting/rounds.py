@@ -67,6 +67,7 @@ def weights(problem: Problem, u: np.ndarray | None, power: float, smoothing: int
     None."""
     if u is None or power == 0:
         return np.ones(problem.n)
+    u = np.where(problem.valid > 0, u, np.nan)  # a masked pixel's zero variance is no neighbour's
     v = np.concatenate([box_mean(x, smoothing).ravel() for x in problem.split(u)])
     pos = v[np.isfinite(v) & (v > 0)]
     if pos.size == 0:
@@ -253,9 +254,9 @@ def model_check(problem: Problem, step: Step, u: np.ndarray) -> Check:
     (the views pooled): a grey model on a chromatic target fits the channels' mean and leaves residuals of opposite
     sign in red and blue."""
     var = problem.target_variance(u) + step.var_render
-    z2 = step.r ** 2 / np.maximum(var, 1e-300)
+    z2 = np.where(problem.valid > 0, step.r ** 2 / np.maximum(var, 1e-300), np.nan)  # masked pixels: not fitted
     parts = problem.split(z2)
-    views = [float(np.median(x) / MEDIAN_CHI2_1) for x in parts]
+    views = [float(np.nanmedian(x) / MEDIAN_CHI2_1) for x in parts]
     chan = np.concatenate([x.reshape(-1, 3) for x in parts])
-    channels = [float(np.median(chan[:, c]) / MEDIAN_CHI2_1) for c in range(3)]
+    channels = [float(np.nanmedian(chan[:, c]) / MEDIAN_CHI2_1) for c in range(3)]
     return Check(views, channels, max(views + channels))

@@ -83,8 +83,10 @@ def search_box(names, init: dict, L: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def linear_param(problem: Problem) -> int | None:
-    """The index of a fitted parameter the images are linear in (the intensity of the only light of every view's
-    scene), or None."""
+    """The index of a fitted parameter every image is linear in (the camera's `exposure`, or the intensity of the
+    only light of every view's scene), or None."""
+    if "exposure" in problem.names:
+        return problem.names.index("exposure")
     if "intensity" in problem.names and all(len(v.scene.lights) == 1 for v in problem.views):
         return problem.names.index("intensity")
     return None
@@ -150,7 +152,8 @@ def score(problem: Problem, Y: np.ndarray, key, spp: int) -> tuple[np.ndarray, n
     loss, sd = robust_loss(terms)
     loss = loss + sd
     loss = np.where(np.isfinite(loss), loss, np.inf)
-    bright = np.stack([x.mean(axis=(1, 2, 3)) for x in problem.split(0.5 * (A + B))], axis=1) * math.sqrt(problem.n)
+    bright = np.stack([x.mean(axis=(1, 2, 3)) / c for x, c in zip(problem.split(0.5 * (A + B)), problem.coverage)],
+                      axis=1) * math.sqrt(problem.n)
     return Y, loss, bright
 
 

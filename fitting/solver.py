@@ -33,6 +33,7 @@ from .problem import Pass, Problem, View
 from .rounds import (Check, Step, chi2_quantile, damped_step, gauss_newton, mahalanobis, model_check, trust_region,
                      two_key_loss, weights)
 from .search import Scan, check_brightness, distinct_starts, global_search
+from .visibility import visibility
 
 
 @dataclass(frozen=True)
@@ -145,6 +146,9 @@ class FitResult:
     history: list = field(default_factory=list)
     timing: list = field(default_factory=list)
     search: dict | None = None
+    visibility: dict | None = None
+    """The meteorological optical range of the fitted extinction with its standard error (`fitting.visibility`);
+    None where the fit did not include the extinction."""
     images: list | None = None
     """Per view, the render at the estimate at the fit resolution (linear radiance; the estimate's passes moved to the
     estimate by their Jacobian): for figures, not written to JSON."""
@@ -466,6 +470,7 @@ def summarise(problem: Problem, state: FitState, cfg: FitConfig) -> FitResult:
         rounds=state.round, wall_s=wall, chi2=float(best.check.worst), correlation=corr.tolist(),
         covariance=C.tolist(), information=information, history=list(state.records),
         timing=[{k2: r[k2] for k2 in ("round", "phase", "wall_s", "cpu_s")} for r in state.records], search=search,
+        visibility=visibility(problem.views[0].scene, names, vals, C),
         images=[x * sc * math.sqrt(problem.n) for x, sc in zip(problem.split(best.step.r + problem.t),
                                                                  problem.scales)])
 

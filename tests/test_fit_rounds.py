@@ -22,11 +22,13 @@ PIXEL_OF = np.arange(N) // 3
 
 
 class _FakeProblem:
-    """What the round functions read of a Problem: element count, the pixel map, views for `split`."""
+    """What the round functions read of a Problem: element count, the pixel map, the fitted elements, views for
+    `split`."""
 
     def __init__(self, n_views=1):
         self.n = N
         self.pixel_of = PIXEL_OF
+        self.valid = np.ones(N)
         side = int(math.sqrt(P // n_views))
         self.views = [type("V", (), {"target": np.zeros((side, P // n_views // side, 3)), "name": f"v{i}",
                                      "target_spp": None, "target_var": None, "downscale": 1, "scale": 1.0})()
