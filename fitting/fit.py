@@ -20,7 +20,9 @@ import sys
 
 import numpy as np
 
+from .photo import fov_check, parse_curve, read_photo
 from .problem import make_view
+from .visibility import describe
 from .solver import FitConfig, fit_views
 from jaxfog._validate import LimitError, check_size
 
@@ -155,6 +157,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--candidate-spp", type=int, default=None, metavar="N",
                    help="samples per pixel assumed for a candidate's target (default: the first target's header "
                         "spp, else 256)")
+    p.add_argument("--target-curve", default=None, metavar="CURVE",
+                   help="the targets' transfer curve: srgb, linear or gamma:G (default: each file's own colour space; "
+                        "sRGB for 8- and 16-bit files that name none, linear for EXR)")
+    p.add_argument("--masks", nargs="+", default=[], metavar="MASK",
+                   help="one mask image per target, in their order (white = use; `none` for a target without one): "
+                        "regions the scene file does not describe")
     p.add_argument("--out", required=True, help="RESULT.json (PNG figures are written beside it)")
     p.add_argument("--quiet", action="store_true", help="no per-iteration progress")
     return p
@@ -182,6 +190,8 @@ def _run(args) -> int:
     names, init_given = check_arguments(args)
     pairs = pair_inputs(args.inputs)
     check_outputs(args.out, [p for pair in pairs for p in pair])
+    parse_curve(args.target_curve)
+    args.photos = {}
     loaded = [load_pair(scene_path, target_path, args) for scene_path, target_path in pairs]
     views = [x[0] for x in loaded]
     candidates = load_candidates(args.candidates, args.downscale)
@@ -201,7 +211,7 @@ def _run(args) -> int:
         spp_c = args.candidate_spp or next((v.target_spp for v in views if v.target_spp), 256)
         payload["candidates"] = rank_candidates(result, views, candidates, spp_c, args.spp)
     payload.update({"targets": [v.name for v in views], "truth": truth, "spp": args.spp, "seed": args.seed,
-                    "budget": args.budget, "downscale": args.downscale})
+                    "budget": args.budget, "downscale": args.downscale, "photos": args.photos or None})
     write_json_atomic(args.out, payload)
     write_figures(args.out, loaded, result, truth)
     if not result.success:
@@ -211,8 +221,14 @@ def _run(args) -> int:
 
 
 def check_arguments(args) -> tuple[list[str], dict]:
-    """The fitted names and the given starting values, after the checks that need no file."""
+    """The fitted names and the starting values, after every check that renders nothing, each a `FitError` (exit 2)
+    naming the argument or file, the value and what is valid: the names (`check_fitted_together`), `--init`, the
+    numbers, each target given once (`check_targets_once`), outputs that would overwrite a `--candidates` scene or a
+    read-only file (`check_outputs_kept`), and the scene files themselves (`check_scenes`: a light to fit with; a
+    scene value outside a fitted parameter's range becomes an in-range start, said in one printed line). The scenes
+    are loaded here (validated and built, nothing compiled) and again by `load_pair`."""
     names = check_names(args.fit)
+    check_fitted_together(names)
     init_given = parse_assignments(args.init)
     if args.spp < 1:
         raise FitError(f"--spp must be >= 1, got {args.spp}")
@@ -225,7 +241,132 @@ def check_arguments(args) -> tuple[list[str], dict]:
         raise FitError(f"--init {' '.join(f'{n}={init_given[n]:g}' for n in not_fitted)}: not in --fit "
                        f"({' '.join(names)}); add it to --fit, or leave it out of --init (an unfitted parameter "
                        f"keeps the scene file's value)")
-    return names, init_given
+    pairs = pair_inputs(args.inputs)
+    check_targets_once(pairs)
+    check_outputs_kept(args.out, args.candidates)
+    starts = check_scenes(pairs, args.candidates, [n for n in names if n not in init_given])
+    return names, {**starts, **init_given}
+
+
+CHANNEL_FIELDS = ("sigma_t", "albedo")
+"""Medium fields fitted grey (`sigma_t`) or per channel (`sigma_t[r]`, ...): both write the same field."""
+
+UNDETERMINED_TOGETHER = {
+    frozenset({"sigma_0", "base_height"}): "only sigma_0 exp(base_height / height_scale) enters the image (a height "
+                                           "fog's sigma_0 and base_height are one parameter; docs/conventions.md)",
+}
+"""Pairs of parameters that no set of targets determines apart, with the reason (documented in docs/ and
+`fitting/params.py`)."""
+
+
+def check_fitted_together(names) -> None:
+    """Refuse the same parameter twice under two names (`sigma_t` with `sigma_t[r]`: both set the medium's
+    `sigma_t`) and the pairs in `UNDETERMINED_TOGETHER`."""
+    for field in CHANNEL_FIELDS:
+        parts = [n for n in names if n.startswith(field + "[")]
+        if field in names and parts:
+            raise FitError(f"--fit {field} {' '.join(parts)}: the same parameter twice ({field} sets every channel of "
+                           f"the medium's {field}, {', '.join(parts)} one channel of it); fit {field} (grey) or "
+                           f"{field}:rgb (per channel), not both")
+    for pair, why in UNDETERMINED_TOGETHER.items():
+        if pair <= set(names):
+            a, b = sorted(pair, key=list(names).index)
+            raise FitError(f"--fit {a} {b}: no targets determine these two apart: {why}; fit one of them")
+
+
+def _same_path(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.abspath(a) == os.path.abspath(b)
+
+
+def check_targets_once(pairs) -> None:
+    """Each target file at most once: one image given twice would count as two views with independent noise."""
+    for i, (_, t) in enumerate(pairs):
+        for j in range(i):
+            if _same_path(t, pairs[j][1]):
+                raise FitError(f"target {t} is given twice (targets {j + 1} and {i + 1}); expected each target once "
+                               f"(the same image twice would count as two independent views)")
+
+
+def check_outputs_kept(out: str, candidates) -> None:
+    """The fit's outputs (RESULT.json and its two PNGs) are neither a `--candidates` scene file nor an existing
+    read-only file (refused as `jaxfog render` refuses a read-only output, also for the superuser)."""
+    from jaxfog._validate import read_only
+
+    base = os.path.splitext(out)[0]
+    for p in (out, base + ".png", base + "_convergence.png"):
+        for c in candidates:
+            if _same_path(p, c):
+                raise FitError(f"--out {out}: would overwrite the --candidates scene {c}")
+        if read_only(p):
+            raise FitError(f"--out {out}: {p} is read-only; expected a writable file or a new name (make it "
+                           f"writable to replace it)")
+
+
+def _in_range_start(name: str, x0: float, L: float) -> float | None:
+    """`x0` if it is a valid start for `name` (inside its open range, finite in the solver's coordinate as float32);
+    else an in-range start from the parameter's search region (`ParamSpec.search`): the nearest end of a fixed region,
+    the geometric middle of an "extinction" (optical depth 0.01-20 over the scene's size `L`) or "length" (L / 30 to
+    3 L) region; None where the region has no scale without a valid x0 ("power", "offset")."""
+    import math
+
+    spec = SPECS[name]
+    with np.errstate(all="ignore"):
+        u = float(spec.to_u(np.float32(x0)))
+    if spec.lo < x0 < spec.hi and math.isfinite(u):
+        return x0
+    kind = spec.search
+    if isinstance(kind, tuple) and len(kind) == 2:
+        return float(min(max(x0, kind[0]), kind[1]))
+    if kind == "extinction":
+        return math.sqrt(0.01 * 20.0) / L
+    if kind == "length":
+        return L / math.sqrt(10.0)
+    return None
+
+
+def check_scenes(pairs, candidates, names) -> dict:
+    """Load every scene file (nothing compiled): each must have a light (a fit of an unlit scene has black images
+    whatever its medium). Returns the starts of the fitted `names` whose first scene's value is outside the
+    parameter's range (sigma_t 0, albedo 1, a droplet diameter of 3 µm): clamped into it (`_in_range_start`), one
+    printed line each. Clamped, not refused: the global search scans the parameter's whole region whatever the start
+    (a start is a hint), and such a scene is a valid scene to render; a refusal would only make the user edit it."""
+    import jaxfog
+
+    scenes = {}
+    listed = [("", p) for p, _ in pairs] + [("--candidates ", c) for c in candidates if c.lower().endswith(".json")]
+    for option, path in listed:  # (a candidate that is not a .json file: `load_candidates` says so)
+        if path in scenes:
+            continue
+        try:
+            sf = jaxfog.load_scene(path)
+        except (jaxfog.SceneError, OSError) as e:
+            raise FitError(f"{option}{e}") from None
+        if not sf.scene.lights:
+            raise FitError(f"{option}{path}: the scene has no light; expected at least one light (an unlit scene "
+                           f"renders black whatever the medium, so there is nothing to fit)")
+        scenes[path] = sf.scene
+    first = scenes[pairs[0][0]]
+    L = max(float(np.linalg.norm(np.asarray(scenes[p].camera.target) - np.asarray(scenes[p].camera.origin)))
+            for p, _ in pairs)
+    starts = {}
+    for n in names:
+        try:
+            x0 = float(SPECS[n].get(first))
+        except (FitError, AttributeError, IndexError):
+            continue  # the scene has no such value: `_run` says so
+        x = _in_range_start(n, x0, L)
+        if x is None:
+            raise FitError(f"{pairs[0][0]}: {n} {x0:g} is outside the fit's range ({SPECS[n].lo:g}, "
+                           f"{SPECS[n].hi:g}); give a start with --init {n}=VALUE")
+        if x != x0:
+            print(f"note: {os.path.basename(pairs[0][0])}: {n} {x0:g} is outside the fit's range ({SPECS[n].lo:g}, "
+                  f"{SPECS[n].hi:g}); the search starts from {x:.4g} instead (a start is a hint: the search scans the "
+                  f"whole range)")
+            starts[n] = x
+    return starts
 
 
 def load_pair(scene_path: str, target_path: str, args) -> tuple:
@@ -239,10 +380,16 @@ def load_pair(scene_path: str, target_path: str, args) -> tuple:
         sf = jaxfog.load_scene(scene_path)
     except (jaxfog.SceneError, OSError) as e:
         raise FitError(str(e)) from None
-    try:
-        target, meta = jaxfog.read_exr(target_path)
-    except Exception as e:  # noqa: BLE001 - OIIO raises plain exceptions; report them as input errors
-        raise FitError(f"cannot read target {target_path!r}: {e}") from None
+    mask = mask_path(args, target_path)
+    photo = None
+    if target_path.lower().endswith(".exr") and args.target_curve in (None, "linear") and mask is None:
+        try:
+            target, meta = jaxfog.read_exr(target_path)
+        except Exception as e:  # noqa: BLE001 - OIIO raises plain exceptions; report them as input errors
+            raise FitError(f"cannot read target {target_path!r}: {e}") from None
+    else:  # a photograph (or a float target with a mask): decoded through its curve, with its validity mask
+        photo = read_photo(target_path, args.target_curve, mask)
+        target, meta = photo.image, {}
     cam = sf.scene.camera
     if args.downscale is None:
         args.downscale = auto_downscale(cam.width, cam.height)
@@ -253,8 +400,30 @@ def load_pair(scene_path: str, target_path: str, args) -> tuple:
                       "spp": f"--spp x {FitConfig.estimate_factor // 2} (an estimate pass)",
                       "max_depth": "integrator.max_depth"})
     spp_t = int(meta["jaxfog:spp"]) if "jaxfog:spp" in meta else None
-    view = make_view(sf.scene, target, os.path.basename(target_path), args.downscale, spp_t)
-    return view, sf.scene, target, true_values(meta)
+    name = os.path.basename(target_path)
+    if photo is None:
+        return make_view(sf.scene, target, name, args.downscale, spp_t), sf.scene, target, true_values(meta)
+    view = make_view(sf.scene, target, name, args.downscale, None, photo.valid, photo.noise_var)
+    print(f"{name}: {photo.curve} curve, {photo.bits or 'float'} bit; pixels left out: "
+          + (", ".join(f"{k} {v}" for k, v in photo.masked.items()) or "none")
+          + (f"; camera: {photo.exif}" if photo.exif else ""))
+    warning = fov_check(photo.exif, float(cam.fov), cam.width, cam.height)
+    if warning:
+        print(f"warning: {name}: {warning}")
+    args.photos[name] = {"curve": photo.curve, "bits": photo.bits, "masked": photo.masked, "exif": photo.exif,
+                         "fov_warning": warning}
+    return view, sf.scene, target, {}
+
+
+def mask_path(args, target_path: str) -> str | None:
+    """The `--masks` entry of this target (in target order; `none` for a target without one)."""
+    masks = getattr(args, "masks", None) or []
+    targets = [t for _, t in pair_inputs(args.inputs)]
+    i = targets.index(target_path)
+    if masks and len(masks) != len(targets):
+        raise FitError(f"--masks: {len(masks)} mask(s) for {len(targets)} target(s); give one per target in their "
+                       f"order, `none` for a target without a mask")
+    return None if not masks or masks[i].lower() == "none" else masks[i]
 
 
 def common_truth(truths: list[dict]) -> dict:
@@ -363,6 +532,8 @@ def print_table(result, truth: dict) -> None:
     info = getattr(result, "information", None) or {}
     for line in info.get("summary", []):
         print("what the views determine: " + line)
+    for line in describe(result.visibility):
+        print(line)
     for m in result.messages:
         print("note: " + m)
 

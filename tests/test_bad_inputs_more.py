@@ -292,3 +292,143 @@ def test_glass_mesh_across_the_fog_box_face_refused(tmp_path):
     data["shapes"][0]["to_world"] = {"translate": [0, 0.6, 0]}
     (tmp_path / "s.json").write_text(json.dumps(data))
     jf.load_scene(tmp_path / "s.json")  # moved wholly inside
+
+
+# ------------------------------------------------------------------------------------------------- jaxfog render
+def test_render_cli_keeps_an_existing_image_when_the_render_fails(tmp_path, capsys, monkeypatch):
+    """The finite-value check runs before the write: a NaN render leaves a valid out.exr as it was."""
+    out = tmp_path / "out.exr"
+    good = np.full((4, 4, 3), 0.25, np.float32)
+    jf.write_exr(out, good)
+    monkeypatch.setattr(_render, "render", lambda scene, key, spp, **kw: np.full(
+        (scene.camera.height, scene.camera.width, 3), np.nan, np.float32))
+    assert cli_main(["render", str(SPOT_FOG), "-o", str(out), *TINY]) == 1
+    assert "nothing written; the existing file is unchanged" in _one_line_error(capsys)
+    np.testing.assert_array_equal(jf.read_exr(out)[0], good)
+
+
+# ------------------------------------------------------------------------------------------------- fitting.fit
+class _FitStarted(Exception):
+    """Raised by the stand-in for `fit_views`: the checks passed; carries the starting values."""
+
+
+@pytest.fixture
+def fit_setup(tmp_path, monkeypatch):
+    """A 16 x 16 spot_fog scene and a plausible constant target; `fit_views` raises `_FitStarted(init)`."""
+    import fitting.fit
+
+    def started(views, names, init, cfg, log=None):
+        raise _FitStarted(init)
+
+    monkeypatch.setattr(fitting.fit, "fit_views", started)
+    data = spot_fog_dict()
+    data["camera"].update(width=16, height=16)
+    data["integrator"]["max_depth"] = 2
+
+    def scene(name="scene.json", **medium):
+        d = json.loads(json.dumps(data))
+        d["medium"].update(medium)
+        for k in [k for k, v in medium.items() if v is None]:
+            del d["medium"][k]
+        (tmp_path / name).write_text(json.dumps(d))
+        return str(tmp_path / name)
+
+    target = tmp_path / "t.exr"
+    jf.write_exr(target, np.full((16, 16, 3), 0.05, np.float32))
+    return {"tmp": tmp_path, "scene": scene, "target": str(target), "data": data}
+
+
+def _fit(argv, capsys):
+    from fitting.fit import main as fit_main
+
+    code = fit_main(argv)
+    return code, capsys.readouterr()
+
+
+def test_fit_refuses_a_scene_without_lights(fit_setup, capsys):
+    data = dict(fit_setup["data"], lights=[])
+    path = fit_setup["tmp"] / "dark.json"
+    path.write_text(json.dumps(data))
+    out = fit_setup["tmp"] / "r.json"
+    code, cap = _fit([str(path), fit_setup["target"], "--out", str(out)], capsys)
+    assert code == 2 and "Traceback" not in cap.err
+    assert f"{path}: the scene has no light; expected at least one light" in cap.err.strip().splitlines()[-1]
+    assert not out.exists()
+
+
+FIT_NAME_ROWS = [
+    ("the same parameter twice", ["--fit", "sigma_t", "sigma_t:rgb"],
+     ["--fit sigma_t sigma_t[r] sigma_t[g] sigma_t[b]: the same parameter twice", "not both"]),
+    ("albedo grey and one channel", ["--fit", "albedo", "albedo[g]"], ["--fit albedo albedo[g]: the same parameter"]),
+    ("sigma_0 with base_height", ["--fit", "sigma_0", "base_height"],
+     ["--fit sigma_0 base_height: no targets determine these two apart: only sigma_0 exp(base_height / "
+      "height_scale) enters the image", "fit one of them"]),
+]
+
+
+@pytest.mark.parametrize("argv, parts", [r[1:] for r in FIT_NAME_ROWS], ids=[r[0] for r in FIT_NAME_ROWS])
+def test_fit_refuses_parameter_sets(argv, parts, fit_setup, capsys):
+    code, cap = _fit([fit_setup["scene"](), fit_setup["target"], "--out", str(fit_setup["tmp"] / "r.json"), *argv],
+                     capsys)
+    assert code == 2
+    err = cap.err.strip().splitlines()[-1]
+    for part in parts:
+        assert part in err, err
+
+
+def test_fit_refuses_one_target_twice(fit_setup, capsys):
+    scene, t = fit_setup["scene"](), fit_setup["target"]
+    link = fit_setup["tmp"] / "same.exr"
+    os.symlink(t, link)
+    for argv in ([scene, t, t], [scene, t, scene, str(link)]):
+        code, cap = _fit([*argv, "--out", str(fit_setup["tmp"] / "r.json")], capsys)
+        assert code == 2
+        assert "is given twice (targets 1 and 2)" in cap.err, cap.err
+
+
+def test_fit_refuses_to_overwrite_a_candidate_scene_or_a_read_only_result(fit_setup, capsys):
+    scene, t, tmp = fit_setup["scene"](), fit_setup["target"], fit_setup["tmp"]
+    cand = fit_setup["scene"]("cand.json")
+    before = open(cand).read()
+    code, cap = _fit([scene, t, "--candidates", cand, "--out", cand], capsys)
+    assert code == 2 and f"--out {cand}: would overwrite the --candidates scene {cand}" in cap.err
+    assert open(cand).read() == before
+    result = tmp / "r.json"
+    result.write_text("{}")
+    result.chmod(stat.S_IRUSR | stat.S_IRGRP | stat.S_IROTH)
+    (tmp / "r.png").write_bytes(b"")
+    (tmp / "r.png").chmod(0o444)
+    code, cap = _fit([scene, t, "--out", str(result)], capsys)
+    assert code == 2 and f"--out {result}: {result} is read-only" in cap.err, cap.err
+    result.chmod(0o644)
+    code, cap = _fit([scene, t, "--out", str(result)], capsys)
+    assert code == 2 and f"{tmp / 'r.png'} is read-only" in cap.err, cap.err
+    assert result.read_text() == "{}"
+
+
+START_ROWS = [
+    # (id, medium changes, --fit, the start the search is given)
+    ("sigma_t 0", dict(sigma_t=0.0), ["sigma_t"], {"sigma_t": np.sqrt(0.2) / np.hypot(4.5, 0.2)}),
+    ("albedo 1", dict(albedo=1.0), ["albedo"], {"albedo": 0.995}),
+    ("diameter 3 um", dict(g=None, phase={"type": "droplet", "diameter": 3.0}), ["diameter"], {"diameter": 5.5}),
+]
+
+
+@pytest.mark.parametrize("medium, fit, start", [r[1:] for r in START_ROWS], ids=[r[0] for r in START_ROWS])
+def test_fit_clamps_a_start_outside_the_range(medium, fit, start, fit_setup, capsys):
+    """A scene value outside the fit's range is only a start: clamped into the range, with one line saying so."""
+    scene = fit_setup["scene"](**medium)
+    with pytest.raises(_FitStarted) as info:
+        _fit([scene, fit_setup["target"], "--fit", *fit, "--out", str(fit_setup["tmp"] / "r.json")], capsys)
+    init = info.value.args[0]
+    for name, value in start.items():
+        assert init[name] == pytest.approx(value, rel=1e-6)
+    notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: scene.json: ")]
+    assert len(notes) == len(start) and "is outside the fit's range" in notes[0] and "the search starts" in notes[0]
+
+
+def test_fit_keeps_a_start_inside_the_range(fit_setup, capsys):
+    with pytest.raises(_FitStarted) as info:
+        _fit([fit_setup["scene"](), fit_setup["target"], "--out", str(fit_setup["tmp"] / "r.json")], capsys)
+    assert info.value.args[0] == {"sigma_t": pytest.approx(0.5), "g": pytest.approx(0.6)}
+    assert "note:" not in capsys.readouterr().out
