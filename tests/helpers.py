@@ -224,7 +224,7 @@ def assert_same_render_up_to_rounding(a, b, *, spp: int, label: str = "", scale=
        pixel's value itself when the contributions are non-negative (`(S + x)/spp` vs `(S + y)/spp`). Such flips
        need a rounding difference within ~1e-6 relative of a threshold, so they are rare; they are counted per
        pixel, and at most `max_flip_fraction` (5%; at least one pixel) of the pixels may differ beyond bound 1
-       (issue 13: 2 of 256 pixels at 1 spp on an AVX-512 CPU). For images (`scale=None`) a differing pixel must still
+       (measured: 2 of 256 pixels at 1 spp on an AVX-512 CPU). For images (`scale=None`) a differing pixel must still
        be bounded by the flip bound `max(|a|, |b|)` per channel, and finite.
 
     A wrong result (another key, another spp, a lost chunk) changes most pixels beyond bound 1 and fails.

@@ -243,7 +243,7 @@ def test_missing_mitsuba_is_reported_as_skipped(tmp_path):
 
 # ---------------------------------------------------------------------------------------------------------- CLI
 def test_bench_arguments_validate_levels():
-    build_parser = bench.build_parser  # `python -m benchmarks.bench` (no longer a `jaxfog` subcommand)
+    build_parser = bench.build_parser  # `python -m benchmarks.bench` (not a `jaxfog` subcommand)
     args = build_parser().parse_args(["--quick", "--levels", "4", "6"])
     with pytest.raises(ValueError, match="multiples"):
         bench.config_from_args(args)

@@ -1,4 +1,4 @@
-"""Gradients of rendered images on the benchmark scenes (issue 3), against finite differences of the expected image.
+"""Gradients of rendered images on the benchmark scenes, against finite differences of the expected image.
 
 Parameters `theta = (sigma_t, albedo, g, light intensity, floor reflectance)` (scalars, all colour channels alike),
 built into a scene by `with_params`. Scenes: `spot_fog` and `backlit` from `data_synthetic/scenes`, at 32 x 32 px and

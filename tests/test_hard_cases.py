@@ -1,7 +1,7 @@
 """Hard cases: values and derivatives stay finite for extreme medium parameters and singular geometry, forward mode
 equals reverse mode there, and d/d sigma_t at sigma_t = 0 is correct.
 
-The grid (issue 3): g in {0, +-1e-7, +-0.5, +-0.99, +-0.999, +-(1 - 1.2e-7)} x sigma_t in {0, 1e-6, 1e-2, 1, 30, 200} x
+The grid: g in {0, +-1e-7, +-0.5, +-0.99, +-0.999, +-(1 - 1.2e-7)} x sigma_t in {0, 1e-6, 1e-2, 1, 30, 200} x
 albedo in {0, 1} (132 combinations), for each estimator. The scene (`SCENE`) is tiny but has every singular configuration:
 
 - the upper half of the 4 x 4 image sees no surface: its rays escape (segments end at the medium's extent, 1000 units);

@@ -1,4 +1,4 @@
-"""Exponential height fog (`jaxfog.HeightFog`) and sunlight (`jaxfog.DirectionalLight`), issue 15.
+"""Exponential height fog (`jaxfog.HeightFog`) and sunlight (`jaxfog.DirectionalLight`).
 
 Levels (style.md): the safe helpers (value and gradient at their edges, against float64 closed forms); the optical
 depth against float64 quadrature (`scipy.integrate.quad`) over random rays; free-flight samples against their pdf

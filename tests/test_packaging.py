@@ -1,4 +1,4 @@
-"""Packaging tells the truth (issue 13, item 4): every package the code imports is declared in pyproject.toml (the
+"""Packaging tells the truth: every package the code imports is declared in pyproject.toml (the
 library's in `dependencies`, the tests' in the `test` extra, Mitsuba in `compare`), and the declared floors are met
 by what is installed; the jax floor has `jax.shard_map(..., check_vma=...)`, which `render` calls."""
 

@@ -217,8 +217,8 @@ def test_pdf_gradient_wrt_g_at_zero(g):
 def test_hg_pdf_value_and_gradient_at_the_float32_edge_of_g(g):
     """1 - |g| of 6e-8 and 1.2e-7 (the two float32 values next to +-1; a fit's unconstrained g = tanh(y) reaches
     them for |y| > 8): value and d p / d g at the peak, beside it and far from it agree with the float64 formula
-    (rel. 1e-4: the peak's value ~1e13 comes from (1 - g)^2 rounded once), and are finite. The gradient used to be
-    NaN at the peak (the derivative of `1 / (d sqrt d)` squares a divisor that underflows)."""
+    (rel. 1e-4: the peak's value ~1e13 comes from (1 - g)^2 rounded once), and are finite: the derivative of
+    `1 / (d sqrt d)` written directly squares a divisor that underflows, a NaN at the peak."""
     g32 = jnp.float32(g)
     gd = float(g32)
     peak = 0.0 if gd > 0 else 2.0
