@@ -12,7 +12,7 @@ from jaxtyping import Array, Float
 
 from ._bsdf import AbstractBSDF
 from ._math import cross, dot_unrolled, safe_normalize, safe_sqrt
-from ._validate import POSITIVE, check_range, check_vector, concrete_values
+from ._validate import NON_NEGATIVE, check_range, check_vector, concrete_values
 
 T_MIN = 1e-4
 """Smallest accepted hit distance (scene units): avoids re-hitting the surface a ray starts on."""
@@ -44,7 +44,9 @@ def check_perpendicular(owner: str, edge_u, edge_v) -> None:
 
 
 class Sphere(eqx.Module):
-    """A sphere: `center` (3-vector, scene units, finite), `radius` (> 0, scene units) and its `bsdf`."""
+    """A sphere: `center` (3-vector, scene units, finite), `radius` (scene units, > 0; 0 is accepted in Python as a
+    placeholder that is never seen but keeps a scene's structure, i.e. its compiled program; scene files need > 0)
+    and its `bsdf`."""
 
     center: Float[Array, "3"] = eqx.field(converter=_vec3)
     radius: Float[Array, ""] = eqx.field(converter=_scalar)
@@ -52,7 +54,7 @@ class Sphere(eqx.Module):
 
     def __check_init__(self):
         check_vector("Sphere", "center", self.center, nonzero=False)
-        check_range("Sphere", "radius", self.radius, POSITIVE)
+        check_range("Sphere", "radius", self.radius, NON_NEGATIVE)
 
 
 class Rectangle(eqx.Module):

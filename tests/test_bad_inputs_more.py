@@ -191,7 +191,7 @@ def test_one_range_helper_shared_by_modules_and_files():
 
 MODULE_ROWS = [
     ("Sphere(radius=-1)", lambda: jf.Sphere((0, 0, 0), -1.0, jf.Diffuse(0.5)), ValueError,
-     ["Sphere.radius = -1.0 (as float32) is outside the valid range (0, inf)"]),
+     ["Sphere.radius = -1.0 (as float32) is outside the valid range [0, inf)"]),
     ("Sphere(center=nan)", lambda: jf.Sphere((0, float("nan"), 0), 1.0, jf.Diffuse(0.5)), ValueError,
      ["Sphere.center = [0.0, nan, 0.0] must be a finite vector"]),
     ("Camera(fov=500)", lambda: jf.Camera(origin=(0, 0, 1), target=(0, 0, 0), up=(0, 1, 0), fov=500, width=4,
