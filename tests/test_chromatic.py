@@ -137,7 +137,8 @@ def test_chromatic_render_equals_grey_render_per_channel(floor_scene, stats, est
     "reparam" is left out: at 8 spp x 32 keys its blue channel (sigma_t = 3, no light-angle lobe) is heavy-tailed
     for the grey reference as much as for the chromatic render (measured at 32 spp: per-pixel mean z +0.34 with
     spectral MIS and +0.42 with the scalar sampling (`spectral_mis=False`), while the image sums differ the other
-    way, 0.91 and 0.90: a few large samples, not a bias of spectral MIS); the unit test above covers the weights it uses."""
+    way, 0.91 and 0.90: a few large samples, not a bias of spectral MIS); the unit test above covers the weights it
+    uses."""
     light = jf.PointLight((0.4, 1.2, 0.3), (6.0, 6.0, 6.0))
     spp = 8
     scene, _, _ = floor_scene([light], medium=jf.HomogeneousMedium(CHROMA_SIGMA_T, CHROMA_ALBEDO,
