@@ -43,9 +43,10 @@ class FitConfig:
     - `spp`: samples per pixel of the unit render; an approach pass has `approach_factor` x spp, an estimate pass
       `estimate_factor` x spp (each as two halves of independent keys). `scan_spp`: per candidate and key.
     - `seed`: every key of the fit derives from it; the same inputs and seed give the same result.
-    - `time_budget`: seconds of each local solve (from its start to its check; None: no limit); an approach that
-      reaches it goes to the estimate, an estimate that reaches it stops with the passes it has. A restart from
-      another start of the search has a budget of its own.
+    - `time_budget`: seconds of each local solve (from its start to its check, without the first pass of each pass
+      size, which pays for compiling its program: a cold cache must not cost the fit its precision; None: no
+      limit); an approach that reaches it goes to the estimate, an estimate that reaches it stops with the passes
+      it has. A restart from another start of the search has a budget of its own.
     - `precision`: the estimate stops once every standard error is at most this (relative for positive
       quantities, absolute for g and albedo), or once more batches cannot shrink it much (`render_share`).
     - `max_se`: a parameter whose standard error exceeds this (relative / absolute) is "not pinned down".
@@ -108,6 +109,7 @@ class FitState:
     t0: float
     c0: float
     t_attempt: float = 0.0          # when the current local solve began (its time budget counts from there)
+    compiled: frozenset = frozenset()  # pass sizes rendered once (their first pass paid for compilation)
     scan: Scan | None = None
     starts: tuple = ()
     start: int = 0                  # index of the current start in `starts`
@@ -188,12 +190,18 @@ def search_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> FitS
                                          best_loss=float(scan.loss[0])))
 
 
-def _halves(problem: Problem, y, cfg: FitConfig, r: int, factor: int) -> tuple[Pass, Pass] | None:
-    ka, kb = jax.random.split(_key(cfg, r))
+def _halves(problem: Problem, state: FitState, y, cfg: FitConfig, factor: int) -> tuple[tuple | None, FitState]:
+    """A pass of `factor` x spp at `y` as two independent halves (None where a render is not finite), and the state
+    with the time of a pass size's first pass (its compilation: seconds to a minute on a cold cache) taken out of
+    the local solve's budget."""
+    t = time.perf_counter()
+    ka, kb = jax.random.split(_key(cfg, state.round))
     half = max(1, factor // 2) * cfg.spp
     pa, pb = problem.pass_(y, ka, half), problem.pass_(y, kb, half)
     ok = all(np.all(np.isfinite(x)) for p in (pa, pb) for x in (p.e, p.u, p.J))
-    return (pa, pb) if ok else None
+    if half not in state.compiled:
+        state = state.replace(compiled=state.compiled | {half}, t_attempt=state.t_attempt + time.perf_counter() - t)
+    return ((pa, pb) if ok else None), state
 
 
 def _failed_pass(problem, state: FitState, log) -> FitState:
@@ -218,7 +226,7 @@ def approach_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
     estimate when a step of little damping is within the linear range `linear_du` or within its own render noise
     (chi^2_k at 95%), when no damping finds a lower loss, after `max_approach` rounds, or at the budget."""
     trial = state.trial
-    halves = _halves(problem, state.y if trial is None else trial, cfg, state.round, cfg.approach_factor)
+    halves, state = _halves(problem, state, state.y if trial is None else trial, cfg, cfg.approach_factor)
     if halves is None:
         return _failed_pass(problem, state.replace(trial=None), log)
     loss = two_key_loss(*halves)
@@ -276,7 +284,7 @@ def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
     move with it by their Jacobians (`_moved`; at most `max_recentres` times, never by more than half the trust
     region); a step beyond that and significant sends the fit back to the approach, one within its noise leaves the
     passes where they are. Else stop when precise enough, when more passes would barely help, or at the budget."""
-    halves = _halves(problem, state.y, cfg, state.round, cfg.estimate_factor)
+    halves, state = _halves(problem, state, state.y, cfg, cfg.estimate_factor)
     if halves is None:
         return _failed_pass(problem, state, log)
     passes = state.passes + (halves,)

@@ -54,7 +54,7 @@ def test_every_import_is_declared():
     deps = _requirements(PYPROJECT["project"]["dependencies"])
     extras = {k: _requirements(v) for k, v in PYPROJECT["project"]["optional-dependencies"].items()}
     library = {_dist(n) for n in _imports("jaxfog") | _imports("fitting")}
-    missing = library - set(deps) - set(extras["compare"])
+    missing = library - set(deps) - set(extras["compare"]) - set(extras["photo"])
     assert not missing, f"imported by jaxfog/ or fitting/ but not declared in dependencies: {sorted(missing)}"
     tests = {_dist(n) for n in _imports("tests")}
     missing = tests - set(deps) - set(extras["test"])
