@@ -398,7 +398,7 @@ def load_pair(scene_path: str, target_path: str, args) -> tuple:
                names={"width": f"{os.path.basename(scene_path)}: camera.width / --downscale",
                       "height": "camera.height / --downscale",
                       "spp": f"--spp x {FitConfig.estimate_factor // 2} (an estimate pass)",
-                      "max_depth": "integrator.max_depth"})
+                      "max_depth": "integrator.max_depth"}, rr_depth=int(sf.scene.rr_depth))
     spp_t = int(meta["jaxfog:spp"]) if "jaxfog:spp" in meta else None
     name = os.path.basename(target_path)
     if photo is None:

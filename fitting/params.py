@@ -167,7 +167,8 @@ def _light_field(scene):
 
 
 def _get_intensity(scene):
-    return float(jnp.mean(getattr(scene.lights[0], _light_field(scene))))
+    field = _light_field(scene)  # first: it refuses a scene without lights
+    return float(jnp.mean(getattr(scene.lights[0], field)))
 
 
 def _set_intensity(scene, value):

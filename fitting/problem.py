@@ -150,7 +150,7 @@ def _scan_program(scenes, names, Y, key, spp):
 def _gain(img, vals: dict, view: int, power: int = 1):
     """`img` times the camera's factor on view `view` (`fitting.params.gains`) to `power` (2 for a variance)."""
     g = gains(vals, view)
-    return img if g is None else img * g ** power
+    return img if g is None else img * jnp.reshape(g ** power, (1,) * (img.ndim - 1) + (3,))
 
 
 class Pass(NamedTuple):

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from helpers import assert_same_render_up_to_rounding
 
@@ -46,6 +47,8 @@ def _result(p: subprocess.Popen) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
+# slow tier: two fresh JAX processes compile the renderer (60 s on 2 cores with a cold cache)
+@pytest.mark.slow
 def test_two_devices_match_one():
     """One device and two (and a 1-spp layer in chunks of 100 pixels vs whole) are differently compiled programs of
     the same paths: the images and the forward-mode derivative image agree up to float32 rounding, including rare
@@ -143,6 +146,8 @@ print(json.dumps(out))
 """
 
 
+# slow tier: a fresh JAX process with two devices compiles the renderer (36 s on 2 cores with a cold cache)
+@pytest.mark.slow
 def test_the_scene_is_copied_to_the_devices_once_and_released_with_it():
     """`render` copies the scene's arrays to every device once and reuses the copies while the arrays live (the fixed
     cost of a call): the copies hold the same values, on both devices; the cache lets go of them with the scene,

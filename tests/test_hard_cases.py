@@ -179,7 +179,9 @@ def test_values_and_gradients_finite(estimator):
         f"{values[densest][:, :N_CAMERA_RAYS].max():.3g}")
 
 
-@pytest.mark.parametrize("estimator", ["detached", pytest.param("reparam", marks=pytest.mark.slow), "proposal"])
+# "proposal" is opt-in: its forward and reverse programs add 22 s on 2 cores; "detached" covers the property
+@pytest.mark.parametrize("estimator", ["detached", pytest.param("reparam", marks=pytest.mark.slow),
+                                       pytest.param("proposal", marks=pytest.mark.slow)])
 def test_forward_equals_reverse(estimator):
     """The suite's one forward == reverse test (for every estimator, over the whole grid of hard parameters).
 

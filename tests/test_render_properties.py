@@ -261,6 +261,8 @@ def test_uniforms_give_each_dimension_and_slices_of_the_bounce_row():
     assert none.shape == (5, 0)
 
 
+# slow tier: compiles whole tracers with and without the barrier (25 s on 2 cores)
+@pytest.mark.slow
 def test_computed_once_changes_no_value_or_derivative_and_stays_in_the_program():
     """`computed_once` (the tracer's fusion barrier on the CPU) returns its operand's values, passes derivatives
     through in both modes and under `vmap`, keeps bool and int leaves, and survives XLA's optimizations as a
@@ -301,6 +303,8 @@ def test_computed_once_changes_no_value_or_derivative_and_stays_in_the_program()
         assert "conditional" in hlo
 
 
+# slow tier: two tracers (with and without the skip) compiled per scene and differentiated, 65-80 s each on 2 cores
+@pytest.mark.slow
 @pytest.mark.parametrize("scene_name", ["fog", "area"])
 def test_skipping_the_last_segments_continuation_changes_no_radiance_or_derivative(scene_name):
     """On the CPU the tracer skips the continuation (direction, throughput) of a path's last segment, which no

@@ -27,6 +27,8 @@ def _scene(depth, extra=()):
                          SIZE + [f"integrator.max_depth={depth}", "medium.albedo=0.6", *extra]).scene
 
 
+# slow tier: a 24-segment and an unbounded tracer compiled and rendered at 8 keys (31 s on 2 cores)
+@pytest.mark.slow
 def test_unbounded_equals_a_deep_fixed_depth(stats):
     unbounded = stats.mean_and_se(stats.render_keys(_scene(-1), 8, seed=21))
     deep = stats.mean_and_se(stats.render_keys(_scene(24), 8, seed=22))
