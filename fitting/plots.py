@@ -25,7 +25,7 @@ def _tonemap(x, scale):
 def plot_comparison(path, views, result, truth, full=None) -> None:
     """Per view: the target (at `full`'s finer resolution where given: people look at images), the target at the fit
     resolution, the fit there (`FitResult.images`: no render of its own) and fit - target (the mean of RGB, what the
-    fit compared)."""
+    fit compared); a photograph's masked pixels (clipped, crushed or the user's) tinted red and grey."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -36,15 +36,21 @@ def plot_comparison(path, views, result, truth, full=None) -> None:
         big = full[row].target if full is not None else v.target
         img = np.asarray(result.images[row]) if result.images else np.full(v.target.shape, np.nan)
         scale = float(np.percentile(big, 99.5)) or 1.0
-        diff = (img - v.target).mean(axis=2)
-        lim = float(np.nanpercentile(np.abs(diff), 99)) or 1.0
         h, w = v.target.shape[:2]
-        for col, (pic, title) in enumerate([(big, f"target {v.name}"), (v.target, f"target at {w} x {h} px"),
-                                            (img, "fit")]):
-            axes[row, col].imshow(_tonemap(pic, scale), interpolation="nearest")
+        masked = np.zeros((h, w), bool) if getattr(v, "valid", None) is None else ~np.asarray(v.valid, bool)
+        diff = np.where(masked, np.nan, (img - v.target).mean(axis=2))
+        lim = float(np.nanpercentile(np.abs(diff), 99)) or 1.0
+        small = _tonemap(v.target, scale)
+        small[masked] = 0.6 * small[masked] + 0.4 * np.array([1.0, 0.0, 0.0])  # masked pixels tinted red
+        tag = f", {int(masked.sum())} masked (red)" if masked.any() else ""
+        for col, (pic, title) in enumerate([(_tonemap(big, scale), f"target {v.name}"),
+                                            (small, f"target at {w} x {h} px{tag}"), (_tonemap(img, scale), "fit")]):
+            axes[row, col].imshow(pic, interpolation="nearest")
             axes[row, col].set_title(title, fontsize=8)
-        im = axes[row, 3].imshow(diff, cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
-        axes[row, 3].set_title("fit - target (mean of RGB)", fontsize=8)
+        cmap = matplotlib.colormaps["RdBu_r"].with_extremes(bad="0.5")
+        im = axes[row, 3].imshow(diff, cmap=cmap, vmin=-lim, vmax=lim,
+                                 interpolation="nearest")
+        axes[row, 3].set_title("fit - target (mean of RGB)" + (", masked grey" if masked.any() else ""), fontsize=8)
         fig.colorbar(im, ax=axes[row, 3], fraction=0.046)
         for a in axes[row]:
             a.set_xticks([])
