@@ -232,7 +232,7 @@ def pick_depth(table, rel_error: float, metric: str = "pixel") -> int | None:
 
 
 # ================================================================================================ measurement
-from jaxfog._measure import CompileTimer, max_rss_mib  # noqa: E402
+from jaxfog.tools import CompileTimer, max_rss_mib  # noqa: E402
 
 
 RenderFn = Callable[..., np.ndarray]
@@ -334,7 +334,7 @@ def timed_draws(scene, seed: int, strategy: dict) -> Callable[[int, int], tuple[
     """`draws(spp, n)`: `n` independent jaxfog images of `spp` spp as `jaxfog.render(scene, key, spp)` makes them
     (its default batching), each timed as one call after a compiling call (a program per spp below a full batch),
     and their wall times (s). Keys `8_000_000 + 100_000 seed + 1000 spp + i`."""
-    from jaxfog._render import DEFAULT_BATCH_PATHS
+    from jaxfog.tools import DEFAULT_BATCH_PATHS
 
     render_default = jaxfog_render_fn(DEFAULT_BATCH_PATHS)
 
@@ -359,8 +359,8 @@ def xla_memory(scene, strategy: dict, paths_per_call: int) -> dict | None:
         import jax.numpy as jnp
 
         from jaxfog import SamplingOptions
-        from jaxfog._render import (DEFAULT_CHUNK_PATHS, _render_items, items_per_call, layers_per_batch,
-                                    layers_per_chunk)
+        from jaxfog.tools import (DEFAULT_CHUNK_PATHS, items_per_call, layers_per_batch, layers_per_chunk,
+                                    render_items as _render_items)
 
         n_dev = jax.local_device_count()  # as `render` splits a batch
         n = items_per_call(scene, 1 << 30, paths_per_call, DEFAULT_CHUNK_PATHS, n_dev)

@@ -418,7 +418,7 @@ def run_benchmark(cfg: Config, out: Path, python: str, version: str, fresh_ref: 
     """The whole measurement (module docstring); writes `out/cycles.json` and returns the result."""
     from benchmarks.bench import mean_and_se
     from benchmarks.common import load
-    from jaxfog._measure import max_rss_mib
+    from jaxfog.tools import max_rss_mib
 
     out.mkdir(parents=True, exist_ok=True)
     cache = out / "cache"

@@ -205,7 +205,7 @@ def load_any(scene, size: int, overrides=()):
     """`load` of a shipped scene by name, or of a scene dict (`area_fog_dense()`), at `size x size`."""
     if isinstance(scene, str):
         return load(scene, size, overrides)
-    from jaxfog._scene_io import scene_from_dict
+    from jaxfog.tools import scene_from_dict
 
     return scene_from_dict(scene, source=scene.get("name", "scene"),
                            overrides=[f"camera.width={size}", f"camera.height={size}", *overrides])
@@ -228,7 +228,7 @@ def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp:
     (`area_fog_dense()`), its cache files named `{tag}_{size}_...`."""
     import os
 
-    from jaxfog._mitsuba import import_mitsuba
+    from jaxfog.tools import import_mitsuba
 
     try:
         mi = import_mitsuba(variant)

@@ -262,7 +262,7 @@ def error_study(cfg: Config, log=print) -> dict:
 # ======================================================================================== 2. primal / fwd / rev
 def _mode_child(mode: str, size: int, spp: int, max_depth: int, runs: int) -> dict:
     """Runs in a fresh subprocess: compile and time one mode; memory from XLA and from the process's peak RSS."""
-    from jaxfog._measure import max_rss_mib
+    from jaxfog.tools import max_rss_mib
 
     import jax
     import jax.numpy as jnp

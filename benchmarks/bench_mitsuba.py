@@ -20,8 +20,9 @@ import time
 import numpy as np
 
 from benchmarks.common import save_npz
-from jaxfog._measure import max_rss_mib
-from jaxfog._mitsuba import import_mitsuba as _import_mitsuba, to_mitsuba
+from jaxfog.tools import max_rss_mib
+from jaxfog import to_mitsuba
+from jaxfog.tools import import_mitsuba as _import_mitsuba
 
 VARIANT = "llvm_ad_rgb"
 

@@ -27,9 +27,9 @@ import jax.numpy as jnp
 
 import jaxfog as jf
 from benchmarks.common import REPO, machine_info, scene_path, write_json
-from jaxfog import _render
-from jaxfog._integrator import n_dims, n_iterations
-from jaxfog._random import uniforms
+from jaxfog import tools as _render
+from jaxfog.tools import n_dims, n_iterations
+from jaxfog.tools import uniforms
 
 SCENE = "spot_fog"
 OUT = REPO / "bench_out" / "profile"

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfog._image import _atomic_write as atomic_write  # noqa: F401  (the one atomic-write helper: write tmp, rename)
+from jaxfog.tools import atomic_write  # noqa: F401  (the one atomic-write helper: write tmp, rename)
 
 REPO = Path(__file__).resolve().parent.parent
 """The repository root (the folder holding `benchmarks/`, `jaxfog/` and `data_synthetic/`)."""

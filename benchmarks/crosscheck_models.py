@@ -33,7 +33,7 @@ import jax
 import numpy as np
 
 import jaxfog
-from jaxfog._mitsuba import TABPHASE_SIZE, tabphase_error
+from jaxfog.tools import TABPHASE_SIZE, tabphase_error
 
 SIZE = ["camera.width=32", "camera.height=32"]
 DROPLET_8 = ["medium.phase.diameter=8"]
@@ -81,7 +81,7 @@ def save_json(path: str, out: dict) -> None:
 
 def render_mitsuba(path, spp, seed, over, integrator):
     """`jaxfog.render_mitsuba`, with the integrator's type replaced (`volpathmis` for chromatic media)."""
-    from jaxfog._mitsuba import import_mitsuba
+    from jaxfog.tools import import_mitsuba
 
     mi = import_mitsuba("scalar_rgb")
     d = jaxfog.to_mitsuba(path, spp=spp, seed=seed, overrides=over,

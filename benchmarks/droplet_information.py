@@ -130,7 +130,7 @@ def main(argv=None) -> int:
     ap.add_argument("--views", nargs="*", default=list(VIEWS))
     ap.add_argument("--out", default="docs/results/droplet_information.json")
     args = ap.parse_args(argv)
-    from jaxfog._devices import use_cpu_cores
+    from jaxfog.tools import use_cpu_cores
 
     use_cpu_cores()
     from benchmarks.common import machine_info, write_json

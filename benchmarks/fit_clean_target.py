@@ -44,7 +44,7 @@ def main() -> None:
     ap.add_argument("--equal-weights", action="store_true", help="weight_power=0 (no per-pixel weights)")
     args = ap.parse_args()
     jaxfog.use_cpu_cores()
-    from jaxfog._cache import use_compilation_cache
+    from jaxfog.tools import use_compilation_cache
 
     use_compilation_cache()
     from fitting.solver import FitConfig, fit_views

@@ -24,10 +24,10 @@ from .photo import fov_check, parse_curve, read_photo
 from .problem import make_view
 from .visibility import describe
 from .solver import FitConfig, fit_views
-from jaxfog._validate import LimitError, check_size
+from jaxfog.tools import LimitError, check_size
 
 from .params import SPECS, FitError, check_names, check_value, scene_values
-from jaxfog._validate import seed_argument as _seed
+from jaxfog.tools import seed_argument as _seed
 
 
 def parse_assignments(items, what="--init") -> dict:
@@ -173,10 +173,10 @@ def main(argv=None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2; argparse has printed the message)
         return e.code if isinstance(e.code, int) else 2
-    from jaxfog._devices import use_cpu_cores
+    from jaxfog.tools import use_cpu_cores
 
     use_cpu_cores()  # every core as a JAX device (warns if JAX has already started with another count)
-    from jaxfog._cache import use_compilation_cache
+    from jaxfog.tools import use_compilation_cache
 
     use_compilation_cache()  # compiled programs kept on disk: a second run does not compile again ($JAXFOG_CACHE_DIR)
     try:
@@ -293,7 +293,7 @@ def check_targets_once(pairs) -> None:
 def check_outputs_kept(out: str, candidates) -> None:
     """The fit's outputs (RESULT.json and its two PNGs) are neither a `--candidates` scene file nor an existing
     read-only file (refused as `jaxfog render` refuses a read-only output, also for the superuser)."""
-    from jaxfog._validate import read_only
+    from jaxfog.tools import read_only
 
     base = os.path.splitext(out)[0]
     for p in (out, base + ".png", base + "_convergence.png"):

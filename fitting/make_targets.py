@@ -65,7 +65,7 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="*", default=None, help="truth names to render (default all)")
     ap.add_argument("--views", nargs="*", default=None, help="of those, only these views (scene names; default all)")
     args = ap.parse_args(argv)
-    from jaxfog._devices import use_cpu_cores
+    from jaxfog.tools import use_cpu_cores
 
     use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     os.makedirs(args.out, exist_ok=True)

@@ -284,8 +284,8 @@ def main(argv=None) -> int:
     if args.summary:
         write_summary(outdir)
         return 0
-    from jaxfog._cache import use_compilation_cache
-    from jaxfog._devices import use_cpu_cores
+    from jaxfog.tools import use_compilation_cache
+    from jaxfog.tools import use_cpu_cores
 
     use_cpu_cores()
     use_compilation_cache()

@@ -156,7 +156,7 @@ def agreement(manifest: dict, cases: list[dict], spp: int = 256, seed: int = 7) 
     import jax
 
     import jaxfog
-    from jaxfog._scene_io import scene_from_dict
+    from jaxfog.tools import scene_from_dict
 
     from .problem import block_noise
 
@@ -258,7 +258,7 @@ def main(argv=None) -> int:
     payload = {"manifest": str(MANIFEST.relative_to(REPO)), "spp": args.spp, "seed": args.seed,
                "command": "python -m fitting.suite " + " ".join(argv if argv is not None else sys.argv[1:])}
     if args.agreement:
-        from jaxfog._devices import use_cpu_cores
+        from jaxfog.tools import use_cpu_cores
 
         use_cpu_cores()
         payload["agreement"] = agreement(manifest, cases, args.agreement_spp)

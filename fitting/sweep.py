@@ -85,7 +85,7 @@ def main(argv=None) -> int:
     p.add_argument("--settings", nargs="+", default=list(DEFAULT_SETTINGS), metavar="DOWNSCALE:SPP")
     p.add_argument("--out", default="docs/results/fit_sweep")
     args = p.parse_args(argv)
-    from jaxfog._devices import use_cpu_cores
+    from jaxfog.tools import use_cpu_cores
 
     use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     try:

@@ -1,0 +1,57 @@
+"""Helpers for command-line tools, fitting scripts and benchmarks built on jaxfog: the public names of what the
+library's own entry points use, so that no script reaches into a private module.
+
+Running
+- `use_cpu_cores()`: every CPU core a JAX device (call before JAX starts).
+- `use_compilation_cache(path=None)`, `cache_dir()`: JAX's persistent compilation cache (`$JAXFOG_CACHE_DIR`).
+
+Checking inputs and writing outputs
+- `check_size(width, height, spp, max_depth, ...)`, `LimitError`, `limits_lifted()`: the size limits of a render.
+- `seed_argument(text)`: an argparse type for seeds in [0, 2^32 - 1].
+- `read_only(path)`: whether an existing file must not be replaced (also for the superuser).
+- `atomic_write(path, write)`: call `write(temp_path)`, then move the result onto `path` (nothing half-written).
+- `scene_from_dict(d, source=...)`: a scene file's dict, validated, as a `SceneFile`.
+
+Measuring
+- `CompileTimer`, `max_rss_mib()`: compile time of JAX programs and the process's peak memory.
+- `render_items`, `items_per_call`, `layers_per_batch`, `layers_per_chunk`, `DEFAULT_BATCH_PATHS`,
+  `DEFAULT_CHUNK_PATHS`: the render loop's work items and batch sizes (for profiling the loop's parts).
+- `n_dims(scene)`, `n_iterations(scene)`, `uniforms(key, n, k)`: the random-number layout of a path.
+
+Mitsuba 3 (the optional extra `compare`)
+- `import_mitsuba(variant=None)`, `TABPHASE_SIZE`, `tabphase_error(diameter)`: the Mitsuba module with a variant set,
+  and the tabulated droplet phase function's size and interpolation error.
+"""
+
+from __future__ import annotations
+
+from ._cache import cache_dir as cache_dir, use_compilation_cache as use_compilation_cache
+from ._devices import use_cpu_cores as use_cpu_cores
+from ._image import _atomic_write as atomic_write
+from ._integrator import n_dims as n_dims, n_iterations as n_iterations
+from ._measure import CompileTimer as CompileTimer, max_rss_mib as max_rss_mib
+from ._mitsuba import TABPHASE_SIZE as TABPHASE_SIZE, import_mitsuba as import_mitsuba
+from ._mitsuba import tabphase_error as tabphase_error
+from ._random import uniforms as uniforms
+from ._render import (
+    DEFAULT_BATCH_PATHS as DEFAULT_BATCH_PATHS,
+    DEFAULT_CHUNK_PATHS as DEFAULT_CHUNK_PATHS,
+    _render_items as render_items,
+    items_per_call as items_per_call,
+    layers_per_batch as layers_per_batch,
+    layers_per_chunk as layers_per_chunk,
+)
+from ._scene_io import scene_from_dict as scene_from_dict
+from ._validate import (
+    LimitError as LimitError,
+    check_size as check_size,
+    limits_lifted as limits_lifted,
+    read_only as read_only,
+    seed_argument as seed_argument,
+)
+
+__all__ = ["CompileTimer", "DEFAULT_BATCH_PATHS", "DEFAULT_CHUNK_PATHS", "LimitError", "TABPHASE_SIZE",
+           "atomic_write", "cache_dir", "check_size", "import_mitsuba", "items_per_call", "layers_per_batch",
+           "layers_per_chunk", "limits_lifted", "max_rss_mib", "n_dims", "n_iterations", "read_only", "render_items",
+           "scene_from_dict", "seed_argument", "tabphase_error", "uniforms", "use_compilation_cache",
+           "use_cpu_cores"]
