@@ -30,8 +30,9 @@ with a second uniform (`u_channel`), and `t` from that channel's truncated expon
 vertex density is the balance-heuristic mixture `q mean_c p_c(t)`, and the surface branch has `1 - q =
 mean_c (1 - q_c)`: no channel's weight divides by a starved density. When the three channels are equal, `q`, `t`
 and every decision are bitwise those of the grey scheme and the weights reduce to its formulas (the means are
-written so that equal entries give exactly that entry). `spectral_mis=False` keeps the former scalar rate (the
-smallest channel) for comparison.
+written so that equal entries give exactly that entry). `spectral_mis=False` samples every channel at the smallest
+one's rate: for a grey medium the same distances at a third of the pdf's cost, and the default there
+(`default_spectral_mis`).
 """
 
 
@@ -146,12 +147,15 @@ class HomogeneousMedium(AbstractMedium):
       objects must lie wholly inside or wholly outside it. Structure: a medium with bounds compiles the box test,
       one without compiles none.
     - `spectral_mis`: static; sample distances with one-sample spectral MIS over the three channels (module
-      docstring); False samples every channel at the smallest one's rate (`sampling_extinction`, the former scheme,
-      kept for the variance comparison of docs/results/chromatic.md). Default (None): True, in Python and in scene
-      files alike. It is structure, not a value (a new `sigma_t` never recompiles), so it does not follow the
-      values: for a grey medium the two schemes sample the same distances (their images differ at float32
-      rounding level) and `spectral_mis=False` is about 10% cheaper per sample (one channel's pdf instead of
-      three; measured on spot_fog 64 x 64, CPU time, interleaved: ratio 1.10).
+      docstring); False samples every channel at the smallest one's rate (`sampling_extinction`, one channel's
+      pdf instead of three). Default (None): decided once, here, from `sigma_t` (`default_spectral_mis`): False
+      for a grey medium whose `sigma_t` is known (concrete, all channels equal: a scene file's `"sigma_t": 0.5`),
+      True otherwise (RGB, or traced: a medium built inside `jit` without the flag). For a grey medium the two
+      schemes sample the same distances and give the same image up to float32 rounding, and False is cheaper per
+      sample (spot_fog at 64 x 64, 512 spp, interleaved pairs on 2 busy cores: spectral MIS took 1.2x the CPU time
+      of a render). It is structure, not a value: a new `sigma_t` never recompiles and never changes it
+      (`Scene.replace_medium` keeps it), so a grey medium that will be fitted per channel asks for
+      `spectral_mis=True` when it is built.
     """
 
     sigma_t: Float[Array, "3"] = eqx.field(converter=rgb)
@@ -162,11 +166,11 @@ class HomogeneousMedium(AbstractMedium):
     bounds: tuple[Float[Array, "3"], Float[Array, "3"]] | None = None
 
     def __init__(self, sigma_t, albedo, phase, extent=1000.0, spectral_mis=None, bounds=None):
-        self.sigma_t = sigma_t
+        self.sigma_t = rgb(sigma_t)  # converted here already: the default of spectral_mis reads it
         self.albedo = albedo
         self.phase = phase
         self.extent = extent
-        self.spectral_mis = True if spectral_mis is None else bool(spectral_mis)
+        self.spectral_mis = default_spectral_mis(self.sigma_t) if spectral_mis is None else bool(spectral_mis)
         self.bounds = None if bounds is None else check_bounds("HomogeneousMedium", bounds)
 
     def __check_init__(self):
@@ -252,6 +256,19 @@ class HomogeneousMedium(AbstractMedium):
         if self.bounds is None:
             return self.sigma_s
         return jnp.where(inside_box(self.bounds[0], self.bounds[1], p), self.sigma_s, 0.0)
+
+
+def default_spectral_mis(sigma_t) -> bool:
+    """Whether a medium with this `sigma_t` (as given to the constructor) needs spectral MIS by default: False
+    when it is concrete and grey (a scalar, or three equal float32 values), True when the channels differ or the
+    value is traced (its channels are not known when the program's structure is decided)."""
+    import numpy as np
+
+    try:
+        v = concrete(rgb(sigma_t))
+    except (TypeError, ValueError):  # not an RGB value: the field's converter says what is wrong
+        return True
+    return v is None or not bool(np.all(v == v[0]))
 
 
 def check_bounds(owner: str, bounds) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
