@@ -188,13 +188,6 @@ class HeightFog(AbstractMedium):
         inv_h = 1.0 / self.height_scale
         return -(dot(o, self.up) - self.base_height) * inv_h, dot(d, self.up) * inv_h
 
-    def log_optical_depth(self, o, d, t) -> Float[Array, "3"]:
-        """`log tau_c(t)` per channel for finite t >= 0 (-inf where sigma_0 = 0 or t = 0)."""
-        b, k = self.line(o, d)
-        pos = self.sigma_0 > 0
-        log_s0 = jnp.where(pos, jnp.log(jnp.where(pos, self.sigma_0, 1.0)), -jnp.inf)
-        return log_s0 + b + log_depth_factor(k, t)
-
     def optical_depth(self, o, d, t) -> Float[Array, "3"]:
         """`tau_c` over `[0, t]` along the ray, RGB; t in [0, inf] (inf: `A / k` upward, else inf where sigma_0 > 0)."""
         b, k = self.line(o, d)
