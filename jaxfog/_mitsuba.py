@@ -1,33 +1,41 @@
 """The same scene in Mitsuba 3, to cross-check a jaxfog render (optional extra `compare`: `pip install "jaxfog[compare]"`).
 
 `to_mitsuba(scene_file)` builds the `mi.load_dict` dict of a jaxfog scene file without Mitsuba; `render_mitsuba`
-renders it (it needs Mitsuba). How each part maps is in `docs/conventions.md` ("Mitsuba 3"); in short:
+renders it (it needs Mitsuba). Each part of the file is converted by its own function, registered under the part's
+`"type"` in one of the tables `PHASES`, `MEDIA`, `SHAPES`, `BSDFS`, `LIGHTS` (a new kind adds a function, not a
+branch). How each part maps is in `docs/conventions.md` ("Mitsuba 3"); in short:
 
 - camera: `perspective` with `fov_axis = "x"`, `to_world = look_at(origin, target, up)`, `hdrfilm` with a box filter;
-- medium: `homogeneous` (`sigma_t`, `albedo`; phase `hg` with `g`, `rayleigh`, two-term HG as `blendphase` of two
-  `hg`, fog droplets as a `tabphase` of jaxfog's own pdf; Draine alone is refused) filling a cube of side `extent`
-  around the camera with a `null` BSDF; the sensor's medium and every shape's exterior medium. Bounded fog
-  (`bounds`): the cube is the box; the sensor's medium only if the camera is inside it, and only glass objects
-  inside it get the fog as exterior (a reflecting surface keeps the ray's medium);
+- homogeneous medium: `homogeneous` (`sigma_t`, `albedo`; phase `hg` with `g`, `rayleigh`, two-term HG as
+  `blendphase` of two `hg`, fog droplets as a `tabphase` of jaxfog's own pdf; Draine alone is refused) filling a
+  cube of side `extent` around the camera with a `null` BSDF; the sensor's medium and every shape's exterior medium.
+  Bounded fog (`bounds`): the cube is the box; the sensor's medium only if the camera is inside it, and only glass
+  objects inside it get the fog as exterior (a reflecting surface keeps the ray's medium);
+- height fog: `heterogeneous` with a `gridvolume` of the extinction along `up` (`height_grid`: texel centres at most
+  `GRID_STEP` scale heights apart, so the grid's extinction is within `GRID_REL_ERROR` of jaxfog's), in a box of
+  side `extent` across and from where the fog below the camera and lights is opaque to where the fog above is
+  negligible; otherwise as homogeneous fog filling space;
 - rectangles: `rectangle` with `to_world` columns `(edge_u / 2, edge_v / 2, normal, center)`, so Mitsuba's local +z
   normal is jaxfog's front normal `normalize(cross(edge_u, edge_v))`; spheres: `sphere`; meshes: `ply` / `obj`
   (`filename`, `face_normals` unless `smooth`, `to_world`: the same matrix);
 - BSDFs: `diffuse`; mirror: `conductor` with `material = "none"` times `specular_reflectance`; glass: `dielectric`
   (no medium inside, as in jaxfog);
 - lights: `point`; `spot` (`cutoff_angle`, `beam_width`, `to_world = look_at(position, position + direction, up)`);
-  area lights: one-sided `rectangle`s with an `area` emitter and a black `diffuse` BSDF;
+  area lights: one-sided `rectangle`s with an `area` emitter and a black `diffuse` BSDF; directional lights:
+  `directional` (`direction` the light travels in, `irradiance`);
 - integrator: `volpath` with the scene's `max_depth` (both count segments) and no Russian roulette.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import sys
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
-__all__ = ["to_mitsuba", "render_mitsuba", "import_mitsuba", "look_at_matrix", "rectangle_matrix"]
+__all__ = ["to_mitsuba", "render_mitsuba", "import_mitsuba", "look_at_matrix", "rectangle_matrix", "height_grid"]
 
 DEFAULT_VARIANT = "scalar_rgb"
 """The Mitsuba variant `render_mitsuba` sets when none is set: it needs no LLVM or CUDA. `llvm_ad_rgb` is much faster
@@ -88,37 +96,6 @@ def _perpendicular(d) -> np.ndarray:
     return p / np.linalg.norm(p)
 
 
-def _extinction(sigma_t) -> dict:
-    """`sigma_t` (and `scale`) of Mitsuba's `homogeneous`: a float for a grey medium; otherwise an RGB texture, which
-    Mitsuba reads as a reflectance (each channel in [0, 1]), times `scale` = the largest channel."""
-    v = _rgb(sigma_t)
-    if max(v) == min(v):
-        return {"sigma_t": v[0]}
-    m = max(v)
-    return {"sigma_t": {"type": "rgb", "value": [x / m for x in v]}, "scale": m}
-
-
-def _albedo(albedo):
-    v = _rgb(albedo)
-    return v[0] if max(v) == min(v) else {"type": "rgb", "value": v}
-
-
-def _phase(med: dict) -> dict:
-    phase = med.get("phase")
-    if phase is None:  # the scene file's shorthand: a bare g is Henyey–Greenstein
-        return {"type": "hg", "g": float(med["g"])}
-    if phase["type"] == "hg":
-        return {"type": "hg", "g": float(phase["g"])}
-    if phase["type"] == "rayleigh":
-        return {"type": "rayleigh"}
-    if phase["type"] == "two_term_hg":  # w HG(g1) + (1 - w) HG(g2); blendphase's weight is that of phase2
-        return {"type": "blendphase", "weight": 1.0 - float(phase["w"]),
-                "phase1": {"type": "hg", "g": float(phase["g1"])}, "phase2": {"type": "hg", "g": float(phase["g2"])}}
-    if phase["type"] == "droplet":
-        return {"type": "tabphase", "values": ",".join(f"{v:.9g}" for v in droplet_table(float(phase["diameter"])))}
-    raise ValueError(f"to_mitsuba: no Mitsuba phase function for medium.phase.type {phase['type']!r}")
-
-
 TABPHASE_SIZE = 2**17 + 1
 """Entries of the `tabphase` table of the droplet phase function (nodes at cos theta = -1 + 2 i / (n - 1), spacing
 1.5e-5: the forward peak of d = 5..50 um droplets, HG with g_HG = 0.97..0.998, is 1 - g_HG ~ 1e-3..0.03 rad wide, i.e.
@@ -161,15 +138,322 @@ def tabphase_error(diameter: float, n: int = TABPHASE_SIZE, sub: int = 16) -> fl
     return float(2.0 * np.pi * h / sub * np.abs(interp - exact).sum())
 
 
-def _bsdf(b: dict, where: str) -> dict:
-    kind = b["type"]
-    if kind == "diffuse":
-        return {"type": "diffuse", "reflectance": _rgb_tex(b["reflectance"])}
-    if kind == "mirror":
-        return {"type": "conductor", "material": "none", "specular_reflectance": _rgb_tex(b.get("reflectance", 1.0))}
-    if kind == "glass":
-        return {"type": "dielectric", "int_ior": float(b.get("int_ior", 1.5)), "ext_ior": float(b.get("ext_ior", 1.0))}
-    raise ValueError(f"to_mitsuba: no Mitsuba BSDF for {where}.bsdf.type {kind!r}")
+# ------------------------------------------------------------------------------------------------ dispatch
+class Converters:
+    """The converters of one kind of scene part (`part`: "medium", "shape", ...), each registered under the scene
+    file's `"type"` of the parts it converts. Calling the table converts a part: `table(value, where, *args)` is
+    `converter(value, *args)`; `where` (the part's key path) names it in the error for a type with no converter."""
+
+    def __init__(self, part: str):
+        self.part = part
+        self._by_type: dict[str, Callable[..., Any]] = {}
+
+    @property
+    def kinds(self) -> frozenset[str]:
+        """The scene-file types with a converter."""
+        return frozenset(self._by_type)
+
+    def register(self, kind: str):
+        """Decorator: the function converts the parts of `"type": kind`."""
+        def add(fn):
+            self._by_type[kind] = fn
+            return fn
+        return add
+
+    def __call__(self, value: dict, where: str, *args):
+        convert = self._by_type.get(value["type"])
+        if convert is None:
+            raise ValueError(f"to_mitsuba: no Mitsuba {self.part} for {where}.type {value['type']!r}")
+        return convert(value, *args)
+
+
+PHASES = Converters("phase function")
+MEDIA = Converters("medium")
+SHAPES = Converters("shape")
+BSDFS = Converters("BSDF")
+LIGHTS = Converters("emitter")
+
+
+class Fog(NamedTuple):
+    """A converted medium: the Mitsuba medium dict (`medium`, id `fog`), the `to_world` of the `cube` it fills
+    (`cube`, numpy, Mitsuba's [-1, 1]^3 onto the box) and whether it stands for fog filling space (`fills_space`:
+    every shape gets it as exterior) rather than a box of it (only glass inside the box does)."""
+
+    medium: dict
+    cube: np.ndarray
+    fills_space: bool
+
+    def contains(self, p) -> bool:
+        """Whether the point `p` lies in the cube (closed, up to rounding)."""
+        local = np.linalg.solve(self.cube, np.append(_vec(p), 1.0))[:3]
+        return bool(np.all(np.abs(local) <= 1.0 + 1e-9))
+
+
+class Export(NamedTuple):
+    """What every converter may need beyond its own part: `to_world` (a 4x4 numpy matrix to the dict's transform),
+    `volume` (a numpy grid `(z, y, x, channels)` to the dict's volume data), the scene-file dict `data`, and the
+    converted fog (`fog`, None without a medium)."""
+
+    to_world: Callable[[np.ndarray], Any]
+    volume: Callable[[np.ndarray], Any]
+    data: dict
+    fog: Fog | None = None
+
+
+def _fog_ref() -> dict:
+    """A reference to the medium `fog` (a new dict each time: the caller may edit the dict it gets)."""
+    return {"type": "ref", "id": "fog"}
+
+
+# ------------------------------------------------------------------------------------------------ phase functions
+def _phase(med: dict) -> dict:
+    """The medium's phase function: its `phase` part, or Henyey–Greenstein for the scene file's shorthand `g`."""
+    if med.get("phase") is None:
+        return {"type": "hg", "g": float(med["g"])}
+    return PHASES(med["phase"], "medium.phase")
+
+
+@PHASES.register("hg")
+def _hg(phase: dict) -> dict:
+    return {"type": "hg", "g": float(phase["g"])}
+
+
+@PHASES.register("rayleigh")
+def _rayleigh(phase: dict) -> dict:
+    return {"type": "rayleigh"}
+
+
+@PHASES.register("two_term_hg")
+def _two_term_hg(phase: dict) -> dict:
+    """`w HG(g1) + (1 - w) HG(g2)`; `blendphase`'s weight is that of `phase2`."""
+    return {"type": "blendphase", "weight": 1.0 - float(phase["w"]),
+            "phase1": {"type": "hg", "g": float(phase["g1"])}, "phase2": {"type": "hg", "g": float(phase["g2"])}}
+
+
+@PHASES.register("droplet")
+def _droplet(phase: dict) -> dict:
+    return {"type": "tabphase", "values": ",".join(f"{v:.9g}" for v in droplet_table(float(phase["diameter"])))}
+
+
+# ---------------------------------------------------------------------------------------------------- media
+def _extinction(sigma_t) -> dict:
+    """`sigma_t` (and `scale`) of Mitsuba's `homogeneous`: a float for a grey medium; otherwise an RGB texture, which
+    Mitsuba reads as a reflectance (each channel in [0, 1]), times `scale` = the largest channel."""
+    v = _rgb(sigma_t)
+    if max(v) == min(v):
+        return {"sigma_t": v[0]}
+    m = max(v)
+    return {"sigma_t": {"type": "rgb", "value": [x / m for x in v]}, "scale": m}
+
+
+def _albedo(albedo):
+    v = _rgb(albedo)
+    return v[0] if max(v) == min(v) else {"type": "rgb", "value": v}
+
+
+def _cube(center, half_axes) -> np.ndarray:
+    """`to_world` of Mitsuba's `cube` ([-1, 1]^3) onto the box with this centre and half axes (3 columns)."""
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = np.column_stack([_vec(a) for a in half_axes]), _vec(center)
+    return m
+
+
+@MEDIA.register("homogeneous")
+def _homogeneous(med: dict, ex: Export) -> Fog:
+    """`homogeneous` in a cube of side `extent` around the camera (fog filling space), or in the box `bounds`."""
+    medium = {"type": "homogeneous", "albedo": _albedo(med["albedo"]), "phase": _phase(med),
+              **_extinction(med["sigma_t"])}
+    box = med.get("bounds")
+    if box is None:
+        half = float(med["extent"]) / 2
+        return Fog(medium, _cube(ex.data["camera"]["origin"], np.eye(3) * half), fills_space=True)
+    lo, hi = _vec(box["min"]), _vec(box["max"])
+    return Fog(medium, _cube((lo + hi) / 2, np.diag((hi - lo) / 2)), fills_space=False)
+
+
+GRID_REL_ERROR = 1e-3
+"""Bound on the relative error of the height-fog grid's extinction between its first and last texel centres: the
+grid (trilinear) interpolates `exp(-h / H)` linearly between centres `a H` apart, which overestimates it by at most
+`max_t ((1 - t) e^(a t) + t e^(-a (1 - t))) - 1 ~ a^2 / 8` (9.9e-4 at `a = GRID_STEP`); an optical depth across
+whole texels is too large by `(a / 2) coth(a / 2) - 1 ~ a^2 / 12` (6.6e-4). A pixel changes by this times its
+log-derivative w.r.t. log sigma_0 (-0.26 and -0.36 on average, at most 0.7, in the shipped height-fog views)."""
+
+GRID_STEP = 0.089
+"""Largest distance between the grid's texel centres, in scale heights `H` (see `GRID_REL_ERROR`)."""
+
+TAU_ABOVE = 1e-4
+"""The grid's last texel centre is where the extinction has fallen to `TAU_ABOVE / extent` in every channel (or
+`extent` above the highest of the camera and the lights): above it a segment no longer than `extent` (jaxfog's
+longest without a surface) has an optical depth below `TAU_ABOVE`, which Mitsuba leaves out beyond the grid."""
+
+TAU_BELOW = 5.0
+"""The grid's first texel centre is where the fog between it and the lowest of the camera and the lights has a
+vertical optical depth of at least `TAU_BELOW` in every channel with fog (and at least one texel, at most `extent`,
+below that lowest point). A path that goes below the grid crosses that layer twice (down from the camera, up to a
+light), so it carries a factor below `exp(-2 TAU_BELOW) = 4.5e-5` in either renderer; Mitsuba has no fog below the
+grid, jaxfog ever denser fog. (The exception, a directional light shining upward from below the horizon, reaches
+the scene through the layer once in Mitsuba and never in jaxfog.) The layer's densest extinction, about
+`sigma(lowest) + TAU_BELOW / H`, is Mitsuba's majorant, which sets its cost."""
+
+
+class HeightGrid(NamedTuple):
+    """The extinction of height fog sampled along `up` (`height_grid`): texel `i` spans the heights
+    `bottom + [i, i + 1] step` and holds `sigma[i]` (RGB, 1/scene unit), the exact extinction at its centre."""
+
+    bottom: float
+    step: float
+    sigma: np.ndarray
+
+    @property
+    def top(self) -> float:
+        return self.bottom + len(self.sigma) * self.step
+
+
+def height_grid(sigma_0, height_scale, base_height, extent, lowest, highest) -> HeightGrid:
+    """The texels along height of jaxfog's `sigma_0 exp(-(h - base_height) / height_scale)` for a scene whose camera
+    and lights lie between the heights `lowest` and `highest` (scene units along `up`), with fog followed `extent`
+    along rays: centres from where the fog below `lowest` is opaque (`TAU_BELOW`) to where the fog above is
+    negligible (`TAU_ABOVE`), at most `GRID_STEP` scale heights apart (`GRID_REL_ERROR`), a half texel beyond them
+    at each end (constant there). `sigma_0` must have a channel > 0. Extinctions above e^80 are e^80, as in jaxfog."""
+    from ._height import LOG_BIG
+
+    s0, H, h0 = np.asarray(_rgb(sigma_0)), float(height_scale), float(base_height)
+    fog = s0[s0 > 0]
+    hi = min(h0 + H * math.log(fog.max() * extent / TAU_ABOVE), highest + extent)
+    # the layer [lo, lowest] has vertical optical depth H (sigma(lo) - sigma(lowest)) = TAU_BELOW in the thinnest
+    # channel: lo = lowest - H log(1 + TAU_BELOW / (H sigma(lowest))), from logarithms (sigma(lowest) may underflow)
+    y = math.log(TAU_BELOW / (H * fog.min())) + (lowest - h0) / H
+    lo = max(lowest - H * max(float(np.logaddexp(0.0, y)), GRID_STEP), lowest - extent)  # at least a texel below
+    hi = max(hi, lo + GRID_STEP * H)
+    n = math.ceil((hi - lo) / (GRID_STEP * H))
+    step = (hi - lo) / n
+    centres = lo + step * np.arange(n + 1)
+    log_s0 = np.log(np.where(s0 > 0, s0, 1.0))
+    sigma = np.where(s0 > 0, np.exp(np.minimum(log_s0[None, :] - (centres[:, None] - h0) / H, LOG_BIG)), 0.0)
+    return HeightGrid(lo - step / 2, step, sigma)
+
+
+def _anchors(part: dict) -> list[np.ndarray]:
+    """The points of the camera or a light that the height-fog grid must hold: its origin or position, an area
+    light's corners; none for a directional light (it is at infinity)."""
+    if "edge_u" in part:
+        c, u, v = _vec(part["center"]), _vec(part["edge_u"]) / 2, _vec(part["edge_v"]) / 2
+        return [c + a * u + b * v for a in (-1, 1) for b in (-1, 1)]
+    return [_vec(part[k]) for k in ("origin", "position") if k in part]
+
+
+@MEDIA.register("height")
+def _height(med: dict, ex: Export) -> Fog:
+    """`heterogeneous` with a `gridvolume` of `height_grid` along `up` (2 texels across: the fog is constant there),
+    in a box of side `extent` across, centred on the camera; grey fog as one channel, RGB as three."""
+    up = _vec(med["up"]) / np.linalg.norm(med["up"])
+    extent = float(med["extent"])
+    if max(_rgb(med["sigma_0"])) == 0:  # no fog: an empty homogeneous medium
+        return _homogeneous({**med, "sigma_t": 0.0}, ex)
+    heights = [float(p @ up) for part in (ex.data["camera"], *ex.data.get("lights", [])) for p in _anchors(part)]
+    grid = height_grid(med["sigma_0"], med["height_scale"], med["base_height"], extent, min(heights), max(heights))
+    across = _perpendicular(up)
+    cam = _vec(ex.data["camera"]["origin"])
+    center = cam + (0.5 * (grid.bottom + grid.top) - cam @ up) * up
+    # (across, up, cross(across, up)) is right-handed: the cube's normals point out of the fog
+    cube = _cube(center, [across * extent / 2, up * (grid.top - grid.bottom) / 2, np.cross(across, up) * extent / 2])
+    unit_to_cube = np.array([[2.0, 0, 0, -1], [0, 2, 0, -1], [0, 0, 2, -1], [0, 0, 0, 1]])  # gridvolume's [0, 1]^3
+    grey = bool(np.all(grid.sigma == grid.sigma[:, :1]))
+    values = grid.sigma[:, :1] if grey else grid.sigma
+    data = np.ascontiguousarray(np.broadcast_to(values[None, :, None, :], (2, len(values), 2, values.shape[1])),
+                                dtype=np.float32)
+    sigma_t = {"type": "gridvolume", "grid": ex.volume(data), "to_world": ex.to_world(cube @ unit_to_cube),
+               "filter_type": "trilinear"}
+    medium = {"type": "heterogeneous", "sigma_t": sigma_t, "scale": 1.0, "albedo": _albedo(med["albedo"]),
+              "phase": _phase(med)}
+    return Fog(medium, cube, fills_space=True)
+
+
+# --------------------------------------------------------------------------------------- shapes and BSDFs
+@SHAPES.register("rectangle")
+def _rectangle(s: dict, ex: Export) -> dict:
+    return {"type": "rectangle", "to_world": ex.to_world(rectangle_matrix(s["center"], s["edge_u"], s["edge_v"]))}
+
+
+@SHAPES.register("sphere")
+def _sphere(s: dict, ex: Export) -> dict:
+    return {"type": "sphere", "center": _rgb(s["center"]), "radius": float(s["radius"])}
+
+
+@SHAPES.register("mesh")
+def _mesh(s: dict, ex: Export) -> dict:
+    from ._mesh import transform_matrix
+
+    ext = os.path.splitext(s["file"])[1].lower()
+    return {"type": "ply" if ext == ".ply" else "obj", "filename": s["file"], "face_normals": not s["smooth"],
+            "to_world": ex.to_world(transform_matrix(s["to_world"]))}
+
+
+@BSDFS.register("diffuse")
+def _diffuse(b: dict) -> dict:
+    return {"type": "diffuse", "reflectance": _rgb_tex(b["reflectance"])}
+
+
+@BSDFS.register("mirror")
+def _mirror(b: dict) -> dict:
+    return {"type": "conductor", "material": "none", "specular_reflectance": _rgb_tex(b.get("reflectance", 1.0))}
+
+
+@BSDFS.register("glass")
+def _glass(b: dict) -> dict:
+    return {"type": "dielectric", "int_ior": float(b.get("int_ior", 1.5)), "ext_ior": float(b.get("ext_ior", 1.0))}
+
+
+def _shape(s: dict, i: int, ex: Export) -> dict:
+    """Shape `i` with its BSDF and, in fog, its exterior medium: every shape in fog filling space; in a box of fog
+    only a glass object inside it (a medium transition must know what surrounds it; a reflecting surface keeps the
+    ray's medium; conventions: glass lies wholly inside or outside the box)."""
+    shape = SHAPES(s, f"shapes.{i}", ex)
+    shape["bsdf"] = BSDFS(s["bsdf"], f"shapes.{i}.bsdf")
+    fog = ex.fog
+    if fog is not None and fog.fills_space:
+        shape["exterior"] = _fog_ref()
+    elif fog is not None and shape["bsdf"]["type"] == "dielectric":
+        if "center" not in s:
+            raise ValueError(f"to_mitsuba: shapes.{i}: a glass {s['type']} in bounded fog is not exported")
+        if fog.contains(s["center"]):
+            shape["exterior"] = _fog_ref()
+    return shape
+
+
+# ---------------------------------------------------------------------------------------------------- lights
+@LIGHTS.register("point")
+def _point(lt: dict, ex: Export) -> dict:
+    return {"type": "point", "position": _rgb(lt["position"]), "intensity": _rgb_tex(lt["intensity"])}
+
+
+@LIGHTS.register("spot")
+def _spot(lt: dict, ex: Export) -> dict:
+    p, d = _vec(lt["position"]), _vec(lt["direction"])
+    d = d / np.linalg.norm(d)
+    return {"type": "spot", "to_world": ex.to_world(look_at_matrix(p, p + d, _perpendicular(d))),
+            "intensity": _rgb_tex(lt["intensity"]), "cutoff_angle": float(lt["cutoff_angle"]),
+            "beam_width": float(lt["beam_width"])}
+
+
+@LIGHTS.register("area")
+def _area(lt: dict, ex: Export) -> dict:
+    shape = {"type": "rectangle", "to_world": ex.to_world(rectangle_matrix(lt["center"], lt["edge_u"], lt["edge_v"])),
+             "bsdf": {"type": "diffuse", "reflectance": _rgb_tex(0.0)},
+             "emitter": {"type": "area", "radiance": _rgb_tex(lt["radiance"])}}
+    if ex.fog is not None and ex.fog.fills_space:
+        shape["exterior"] = _fog_ref()
+    return shape
+
+
+@LIGHTS.register("directional")
+def _directional(lt: dict, ex: Export) -> dict:
+    """`directional`: `direction` the light travels in (unit), `irradiance` on a surface facing it. Mitsuba's shadow
+    rays end outside the scene's bounding sphere (the fog's cube included), jaxfog's at infinity: they differ by the
+    fog beyond the cube (negligible above a height-fog grid, `TAU_ABOVE`)."""
+    d = _vec(lt["direction"])
+    return {"type": "directional", "direction": (d / np.linalg.norm(d)).tolist(),
+            "irradiance": _rgb_tex(lt["irradiance"])}
 
 
 # --------------------------------------------------------------------------------------------------- the dict
@@ -189,25 +473,55 @@ def _scene_data(scene, overrides) -> dict:
                     f"dict, got {type(scene).__name__} (a Scene Module has no file form; pass its SceneFile)")
 
 
-def _default_transform() -> Callable[[np.ndarray], Any]:
-    """`mi.ScalarTransform4f` when Mitsuba is imported and has a variant set, else the numpy matrix itself."""
-    mi = sys.modules.get("mitsuba")
-    try:
-        if mi is not None and mi.variant() is not None:
-            return lambda m: mi.ScalarTransform4f(np.asarray(m, np.float64).tolist())
-    except Exception:  # a half-imported or broken Mitsuba: plain matrices
-        pass
-    return lambda m: m
-
-
 def _positive_int(value, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
         raise ValueError(f"to_mitsuba: {name} must be a positive integer, got {value!r}")
     return int(value)
 
 
+def _adapters(transform, volume) -> tuple[Callable[[np.ndarray], Any], Callable[[np.ndarray], Any]]:
+    """What the dict holds for a 4x4 matrix and for a grid: the given functions, else `mi.ScalarTransform4f` and
+    `mi.VolumeGrid` when Mitsuba is imported and has a variant set, else the numpy arrays themselves."""
+    keep = lambda a: a  # noqa: E731
+    mi = sys.modules.get("mitsuba")
+    matrix, grid = keep, keep
+    try:
+        if mi is not None and mi.variant() is not None:
+            matrix = lambda m: mi.ScalarTransform4f(np.asarray(m, np.float64).tolist())  # noqa: E731
+            grid = mi.VolumeGrid
+    except Exception:  # a half-imported or broken Mitsuba: plain arrays
+        pass
+    return (transform or matrix), (volume or grid)
+
+
+def _integrator(integrator: dict, max_depth) -> dict:
+    """`volpath` at the file's (or the given) `max_depth`: fixed depths without Russian roulette, as in jaxfog;
+    `max_depth = -1` with Russian roulette from the file's `rr_depth` on."""
+    max_depth = integrator["max_depth"] if max_depth is None else max_depth
+    if max_depth != -1:
+        max_depth = _positive_int(max_depth, "max_depth")
+    rr_depth = int(integrator.get("rr_depth", 5)) if max_depth == -1 else max_depth + 1000
+    return {"type": "volpath", "max_depth": max_depth, "rr_depth": rr_depth}
+
+
+def _sensor(cam: dict, spp: int, seed: int, ex: Export) -> dict:
+    sensor = {
+        "type": "perspective",
+        "fov": float(cam["fov"]),
+        "fov_axis": "x",
+        "to_world": ex.to_world(look_at_matrix(cam["origin"], cam["target"], cam["up"])),
+        "film": {"type": "hdrfilm", "width": int(cam["width"]), "height": int(cam["height"]),
+                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+        "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
+    }
+    if ex.fog is not None and ex.fog.contains(cam["origin"]):
+        sensor["medium"] = _fog_ref()
+    return sensor
+
+
 def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, seed: int = 0, overrides=(),
-               transform: Callable[[np.ndarray], Any] | None = None) -> dict:
+               transform: Callable[[np.ndarray], Any] | None = None,
+               volume: Callable[[np.ndarray], Any] | None = None) -> dict:
     """The Mitsuba 3 scene dict (for `mi.load_dict`) of a jaxfog scene file. Needs no Mitsuba to build.
 
     **Arguments:**
@@ -221,119 +535,30 @@ def to_mitsuba(scene, *, spp: int | None = None, max_depth: int | None = None, s
     - `transform`: turns each 4x4 `to_world` matrix (numpy float64) into what the dict holds. Default: a
       `mi.ScalarTransform4f` when `mitsuba` is imported and a variant is set (so `mi.load_dict(to_mitsuba(path))`
       works), otherwise the numpy matrix (for inspection; `mi.load_dict` accepts only Mitsuba transforms).
+    - `volume`: likewise for the height-fog grid (numpy float32 `(z, y, x, channels)`): default `mi.VolumeGrid`
+      when Mitsuba is imported with a variant set, otherwise the numpy array.
 
     **Returns:** a dict with `"type": "scene"`, `"integrator"`, `"sensor"`, `"fog"` and `"fog_boundary"` (when the
     scene has a medium), `"shape_<i>"` per shape and `"light_<i>"` per light (scene order). **Raises:** `SceneError`
-    for an invalid scene, `ValueError` for a part Mitsuba has no counterpart for or a bad `spp`/`max_depth`.
+    for an invalid scene, `ValueError` for a part Mitsuba has no counterpart for or a bad `spp`/`max_depth`/`seed`.
     """
     data = _scene_data(scene, overrides)
-    to_world = transform if transform is not None else _default_transform()
     spp = _positive_int(data["integrator"]["spp"] if spp is None else spp, "spp")
-    max_depth = data["integrator"]["max_depth"] if max_depth is None else max_depth
-    if max_depth != -1:
-        max_depth = _positive_int(max_depth, "max_depth")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**32:
         raise ValueError(f"to_mitsuba: seed must be an integer in [0, 2^32), got {seed!r}")
-    cam = data["camera"]
-    out: dict = {
-        "type": "scene",
-        # fixed depths: no Russian roulette, as in jaxfog; max_depth = -1: Russian roulette from rr_depth on
-        "integrator": {"type": "volpath", "max_depth": max_depth,
-                       "rr_depth": int(data["integrator"].get("rr_depth", 5)) if max_depth == -1 else max_depth + 1000},
-    }
-    med = data.get("medium")
-    bounded = med is not None and med.get("bounds") is not None
-    fog_ref = None
-    if med is not None:
-        if med.get("type", "homogeneous") != "homogeneous":
-            raise ValueError(f"to_mitsuba: no Mitsuba medium for medium.type {med['type']!r}")
-        out["fog"] = {"type": "homogeneous", "albedo": _albedo(med["albedo"]), "phase": _phase(med),
-                      **_extinction(med["sigma_t"])}
-        fog_ref = {"type": "ref", "id": "fog"}
-        box = med.get("bounds")
-        if box is None:  # fog filling space: a cube of side `extent` around the camera
-            cube = np.diag([float(med["extent"]) / 2] * 3 + [1.0])
-            cube[:3, 3] = _vec(cam["origin"])
-        else:
-            lo, hi = _vec(box["min"]), _vec(box["max"])
-            cube = np.diag(list((hi - lo) / 2) + [1.0])
-            cube[:3, 3] = (lo + hi) / 2
-        out["fog_boundary"] = {"type": "cube", "to_world": to_world(cube), "bsdf": {"type": "null"},
-                               "interior": fog_ref}
-        if box is not None and not _inside(box)(cam["origin"]):
-            fog_ref = None  # the camera starts in vacuum; rays enter the fog through the cube
-    sensor = {
-        "type": "perspective",
-        "fov": float(cam["fov"]),
-        "fov_axis": "x",
-        "to_world": to_world(look_at_matrix(cam["origin"], cam["target"], cam["up"])),
-        "film": {"type": "hdrfilm", "width": int(cam["width"]), "height": int(cam["height"]),
-                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-        "sampler": {"type": "independent", "sample_count": spp, "seed": int(seed)},
-    }
-    if fog_ref is not None:
-        sensor["medium"] = fog_ref
-    out["sensor"] = sensor
-
+    ex = Export(*_adapters(transform, volume), data)
+    out: dict = {"type": "scene", "integrator": _integrator(data["integrator"], max_depth)}
+    if data.get("medium") is not None:
+        ex = ex._replace(fog=MEDIA(data["medium"], "medium", ex))
+        out["fog"] = ex.fog.medium
+        out["fog_boundary"] = {"type": "cube", "to_world": ex.to_world(ex.fog.cube), "bsdf": {"type": "null"},
+                               "interior": _fog_ref()}
+    out["sensor"] = _sensor(data["camera"], spp, int(seed), ex)
     for i, s in enumerate(data.get("shapes", [])):
-        if s["type"] == "rectangle":
-            shape = {"type": "rectangle", "to_world": to_world(rectangle_matrix(s["center"], s["edge_u"], s["edge_v"]))}
-        elif s["type"] == "sphere":
-            shape = {"type": "sphere", "center": _rgb(s["center"]), "radius": float(s["radius"])}
-        elif s["type"] == "mesh":
-            from ._mesh import transform_matrix
-
-            ext = os.path.splitext(s["file"])[1].lower()
-            shape = {"type": "ply" if ext == ".ply" else "obj", "filename": s["file"],
-                     "face_normals": not s["smooth"], "to_world": to_world(transform_matrix(s["to_world"]))}
-        else:
-            raise ValueError(f"to_mitsuba: no Mitsuba shape for shapes.{i}.type {s['type']!r}")
-        shape["bsdf"] = _bsdf(s["bsdf"], f"shapes.{i}")
-        if bounded:
-            # bounded fog: a reflecting surface keeps the ray's medium (no transition); a glass object is a medium
-            # transition and must know what surrounds it (conventions: wholly inside or outside the box)
-            if s["bsdf"]["type"] == "glass":
-                if s["type"] == "mesh":
-                    raise ValueError(f"to_mitsuba: shapes.{i}: a glass mesh in bounded fog is not exported")
-                if _inside(med["bounds"])(s["center"]):
-                    shape["exterior"] = {"type": "ref", "id": "fog"}
-        elif fog_ref is not None:
-            shape["exterior"] = fog_ref
-        out[f"shape_{i}"] = shape
-
+        out[f"shape_{i}"] = _shape(s, i, ex)
     for i, lt in enumerate(data.get("lights", [])):
-        kind = lt["type"]
-        if kind == "point":
-            out[f"light_{i}"] = {"type": "point", "position": _rgb(lt["position"]), "intensity": _rgb_tex(lt["intensity"])}
-        elif kind == "spot":
-            p, d = _vec(lt["position"]), _vec(lt["direction"])
-            d = d / np.linalg.norm(d)
-            out[f"light_{i}"] = {
-                "type": "spot",
-                "to_world": to_world(look_at_matrix(p, p + d, _perpendicular(d))),
-                "intensity": _rgb_tex(lt["intensity"]),
-                "cutoff_angle": float(lt["cutoff_angle"]),
-                "beam_width": float(lt["beam_width"]),
-            }
-        elif kind == "area":
-            shape = {
-                "type": "rectangle",
-                "to_world": to_world(rectangle_matrix(lt["center"], lt["edge_u"], lt["edge_v"])),
-                "bsdf": {"type": "diffuse", "reflectance": _rgb_tex(0.0)},
-                "emitter": {"type": "area", "radiance": _rgb_tex(lt["radiance"])},
-            }
-            if fog_ref is not None and not bounded:
-                shape["exterior"] = fog_ref
-            out[f"light_{i}"] = shape
-        else:
-            raise ValueError(f"to_mitsuba: no Mitsuba emitter for lights.{i}.type {kind!r}")
+        out[f"light_{i}"] = LIGHTS(lt, f"lights.{i}", ex)
     return out
-
-
-def _inside(box):
-    """A test of whether a point lies in the closed box `{"min": ..., "max": ...}`."""
-    lo, hi = _vec(box["min"]), _vec(box["max"])
-    return lambda p: bool(np.all(_vec(p) >= lo) and np.all(_vec(p) <= hi))
 
 
 # ------------------------------------------------------------------------------------------------ with Mitsuba
@@ -380,7 +605,7 @@ def render_mitsuba(scene, spp: int | None = None, seed: int = 0, *, max_depth: i
     """
     mi = import_mitsuba(variant)
     d = to_mitsuba(scene, spp=spp, max_depth=max_depth, seed=seed, overrides=overrides,
-                   transform=lambda m: mi.ScalarTransform4f(np.asarray(m, np.float64).tolist()))
+                   transform=lambda m: mi.ScalarTransform4f(np.asarray(m, np.float64).tolist()), volume=mi.VolumeGrid)
     loaded = mi.load_dict(d)
     img = mi.render(loaded, spp=d["sensor"]["sampler"]["sample_count"], seed=int(seed))
     return np.asarray(img, dtype=np.float32)[..., :3]
