@@ -155,7 +155,10 @@ def channel_param(name: str, transform: Transform, lo: float, hi: float, unit: s
         return float(owner_value(scene)[channel])
 
     def set_(scene, value):
-        return scene.replace_medium(**{field: owner_value(scene).at[channel].set(value)})
+        kw = {field: owner_value(scene).at[channel].set(value)}
+        if field == "sigma_t" and "spectral_mis" in {f.name for f in dataclasses.fields(scene.medium)}:
+            kw["spectral_mis"] = True  # channels fitted apart differ: distances sampled by spectral MIS
+        return scene.replace_medium(**kw)
 
     return ParamSpec(name, transform, lo, hi, unit, get, set_, search)
 
