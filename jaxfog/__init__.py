@@ -33,6 +33,7 @@ from ._height import HeightFog as HeightFog
 from ._mesh import Mesh as Mesh, MeshError as MeshError, read_mesh as read_mesh, write_ply as write_ply
 from ._medium import AbstractMedium as AbstractMedium, HomogeneousMedium as HomogeneousMedium
 from ._mitsuba import render_mitsuba as render_mitsuba, to_mitsuba as to_mitsuba
+from ._mitsuba_xml import MitsubaXmlError as MitsubaXmlError, scene_from_mitsuba_xml as scene_from_mitsuba_xml
 from ._phase import (
     AbstractPhaseFunction as AbstractPhaseFunction,
     Draine as Draine,

@@ -1,9 +1,10 @@
 """The `jaxfog` command line: `jaxfog render SCENE.json -o OUT.exr [...]` (also `python -m jaxfog`).
 
 Subcommands are entries in `COMMANDS`: a name, a one-line help, `configure(parser)` adding its arguments and
-`run(args) -> exit code`: `render` (the fit is `python -m fitting.fit`; the benchmarks, not installed, are
-`python -m benchmarks.bench` etc. from a checkout). Expected failures (an invalid scene, a bad argument,
-an unwritable output) print one line `jaxfog: error: ...` and exit non-zero, without a traceback.
+`run(args) -> exit code`: `render`, `convert` (a Mitsuba 3 XML scene to a scene file). The fit is
+`python -m fitting.fit`; the benchmarks, not installed, are `python -m benchmarks.bench` etc. from a checkout.
+Expected failures (an invalid scene, a bad argument, an unwritable output) print one line `jaxfog: error: ...` and
+exit non-zero, without a traceback.
 """
 
 from __future__ import annotations
@@ -199,9 +200,60 @@ def _version() -> str:
     return __version__
 
 
+# ----------------------------------------------------------------------------------------------------------- convert
+def _parameter(text: str) -> tuple[str, str]:
+    name, sep, value = text.partition("=")
+    if not sep or not name.strip():
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
+    return name.strip(), value
+
+
+def _configure_convert(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", metavar="SCENE.xml",
+                   help="Mitsuba 3 XML scene (the subset jaxfog models: docs/conventions.md, \"Mitsuba 3\")")
+    p.add_argument("-o", "--output", metavar="OUT.json", required=True,
+                   help="jaxfog scene file to write (mesh files relative to its folder)")
+    p.add_argument("-D", dest="parameters", action="append", default=[], type=_parameter, metavar="NAME=VALUE",
+                   help="a value for $NAME in the XML, overriding its <default> (as mitsuba -D; repeatable)")
+
+
+def _run_convert(args: argparse.Namespace) -> int:
+    import warnings
+
+    from ._mitsuba_xml import MitsubaXmlWarning, scene_from_mitsuba_xml, scene_json_text
+
+    _check_output(args.output, ".json", "-o", [("SCENE.xml", args.scene)])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", MitsubaXmlWarning)
+        data = scene_from_mitsuba_xml(args.scene, dict(args.parameters))
+    for w in caught:
+        print(f"jaxfog: warning: {_one_line(w.message)}", file=sys.stderr)
+    folder = os.path.dirname(os.path.abspath(args.output))
+    for shape in data["shapes"]:  # mesh files relative to the scene file, as load_scene reads them
+        if shape["type"] == "mesh":
+            shape["file"] = os.path.relpath(shape["file"], folder)
+    text = scene_json_text(data)
+    tmp = os.path.join(folder, f".{os.path.basename(args.output)}.tmp-{os.getpid()}")
+    try:  # atomic: a reader never sees half a file, a failure leaves the old one
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, args.output)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    cam = data["camera"]
+    medium = "no fog" if data.get("medium") is None else "fog"
+    print(f"{data['name']}: {cam['width']}x{cam['height']}, {len(data['shapes'])} shapes, "
+          f"{len(data['lights'])} lights, {medium}")
+    print(f"wrote {args.output}")
+    return 0
+
+
 COMMANDS: list[Command] = [
     Command("render", "render a scene file to an OpenEXR (and optionally a PNG preview)",
             _configure_render, _run_render),
+    Command("convert", "convert a Mitsuba 3 XML scene to a jaxfog scene file", _configure_convert, _run_convert),
 ]
 """The subcommands, in `--help` order. Add `Command(name, help, configure, run)` entries for new ones."""
 
