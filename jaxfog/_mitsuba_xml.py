@@ -456,8 +456,8 @@ class Converters:
     type it reads. Calling the table converts an element; a type with no converter is refused, naming the element,
     its line and the types jaxfog reads."""
 
-    def __init__(self, tag: str, what: str):
-        self.tag, self.what = tag, what
+    def __init__(self, tag: str, what: str, note: str = ""):
+        self.tag, self.what, self.note = tag, what, note
         self._by_type: dict[str, Callable[..., Any]] = {}
 
     @property
@@ -479,7 +479,7 @@ class Converters:
         convert = self._by_type.get(p.type)
         if convert is None:
             raise p.error(f"the {self.tag} plugin {p.type!r} is not supported: jaxfog has no {self.what} of that "
-                          f"kind; it reads {', '.join(sorted(self._by_type))}")
+                          f"kind{self.note}; it reads {', '.join(sorted(self._by_type))}")
         return convert(p, *args)
 
 
@@ -487,8 +487,9 @@ INTEGRATORS = Converters("integrator", "integrator")
 SENSORS = Converters("sensor", "camera")
 SHAPES = Converters("shape", "shape")
 BSDFS = Converters("bsdf", "surface")
-EMITTERS = Converters("emitter", "light")
-MEDIA = Converters("medium", "medium (general heterogeneous media are not modelled)")
+EMITTERS = Converters("emitter", "light", " (no environment light: rays that escape see black)")
+MEDIA = Converters("medium", "medium", " (its height fog is exported as a heterogeneous gridvolume but not read "
+                                        "back: give it as a jaxfog scene file)")
 PHASES = Converters("phase", "phase function")
 
 
