@@ -22,6 +22,7 @@ from ._devices import use_cpu_cores as use_cpu_cores
 from ._image import read_exr as read_exr, write_exr as write_exr, write_png as write_png
 from ._integrator import SamplingOptions as SamplingOptions
 from ._lights import (
+    AbstractAreaLight as AbstractAreaLight,
     AbstractLight as AbstractLight,
     AbstractPointLikeLight as AbstractPointLikeLight,
     AreaLight as AreaLight,
@@ -45,6 +46,7 @@ from ._phase import (
 from ._render import render as render
 from ._scene import Scene as Scene
 from ._scene_io import SceneError as SceneError, load_scene as load_scene
+from ._shapes import AbstractShape as AbstractShape
 from ._shapes import Rectangle as Rectangle, Sphere as Sphere
 from ._validate import LimitError as LimitError, check_finite as check_finite
 

@@ -21,9 +21,10 @@ from equinox import AbstractClassVar
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._fields import check_range, rgb, scalar
+from ._fields import rgb, scalar
 from ._math import INV_PI, dot, safe_normalize, safe_sqrt
 from ._sampling import Polar, cosine_pdf, cosine_sample, to_direction
+from ._validate import POSITIVE, UNIT, check_range
 
 
 class BSDFSample(NamedTuple):
@@ -98,7 +99,7 @@ class Diffuse(AbstractLobeBSDF):
     reflectance: Float[Array, "3"] = eqx.field(converter=rgb)
 
     def __check_init__(self):
-        check_range("Diffuse", "reflectance", self.reflectance, 0.0, 1.0)
+        check_range("Diffuse", "reflectance", self.reflectance, UNIT)
 
     def sample_polar(self, u):
         return cosine_sample(u)
@@ -118,7 +119,7 @@ class Mirror(AbstractBSDF):
     is_delta: ClassVar[bool] = True
 
     def __check_init__(self):
-        check_range("Mirror", "reflectance", self.reflectance, 0.0, 1.0)
+        check_range("Mirror", "reflectance", self.reflectance, UNIT)
 
     def sample(self, d, n, u) -> BSDFSample:
         return BSDFSample(reflect(d, n), self.reflectance, jnp.float32(0.0), jnp.bool_(True), jnp.bool_(False))
@@ -140,8 +141,8 @@ class Glass(AbstractBSDF):
     is_delta: ClassVar[bool] = True
 
     def __check_init__(self):
-        check_range("Glass", "int_ior", self.int_ior, 0.0, None, lo_open=True)
-        check_range("Glass", "ext_ior", self.ext_ior, 0.0, None, lo_open=True)
+        check_range("Glass", "int_ior", self.int_ior, POSITIVE)
+        check_range("Glass", "ext_ior", self.ext_ior, POSITIVE)
 
     def sample(self, d, n, u) -> BSDFSample:
         cos_d = dot(d, n)

@@ -23,11 +23,13 @@ ratio `sigma_t^c(t) / sigma_hat(t) = sigma_0^c / sigma_hat_0` is constant along 
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._fields import check_nonzero, check_range, rgb, scalar
+from ._fields import rgb, scalar
 from ._math import dot, safe_normalize
 from ._medium import (
     Q_MAX_SURFACE,
@@ -38,6 +40,7 @@ from ._medium import (
     sampling_extinction,
 )
 from ._phase import AbstractPhaseFunction, HenyeyGreenstein
+from ._validate import ANY, HEIGHT_SCALE_RANGE, NON_NEGATIVE, UNIT, check_range, check_vector
 
 LOG_BIG = 80.0
 """Largest exponent used (densities, optical depths, pdfs <= e^80 ~ 5.5e34: finite in float32 with room for a
@@ -146,8 +149,8 @@ class HeightFog(AbstractMedium):
 
     **Fields:**
     - `sigma_0`: extinction coefficient at the base height, RGB (a scalar sets all channels), 1/scene unit, >= 0.
-    - `height_scale`: `H` > 0, scene units: the extinction falls by `e` every `H` upward. 1e-3 to 1e6 are handled
-      stably; `H -> inf` is the homogeneous medium.
+    - `height_scale`: `H` in [1e-3, 1e6] (`HEIGHT_SCALE_RANGE`), scene units: the extinction falls by `e` every `H`
+      upward; the optical depths are computed stably in that range; `H -> inf` is the homogeneous medium.
     - `base_height`: `h_0`, scene units (default 0): the height (along `up`) where the extinction is `sigma_0`.
       Only `sigma_0 exp(h_0 / H)` enters the image: `sigma_0` and `base_height` cannot be fitted together.
     - `albedo`: single-scattering albedo, RGB in [0, 1] (constant: `sigma_s = albedo sigma_t`).
@@ -165,14 +168,19 @@ class HeightFog(AbstractMedium):
     up: Float[Array, "3"] = eqx.field(converter=lambda v: safe_normalize(jnp.asarray(v, jnp.float32).reshape(3)),
                                       default=(0.0, 1.0, 0.0))
     extent: float = eqx.field(static=True, default=1000.0)
+    bounds: ClassVar[None] = None
+    """Height fog fills space (no box)."""
 
     def __check_init__(self):
-        check_range("HeightFog", "sigma_0", self.sigma_0, 0.0)
-        check_range("HeightFog", "height_scale", self.height_scale, 0.0, None, lo_open=True)
-        check_range("HeightFog", "base_height", self.base_height)
-        check_range("HeightFog", "albedo", self.albedo, 0.0, 1.0)
-        check_nonzero("HeightFog", "up", self.up)
+        check_range("HeightFog", "sigma_0", self.sigma_0, NON_NEGATIVE)
+        check_range("HeightFog", "height_scale", self.height_scale, HEIGHT_SCALE_RANGE)
+        check_range("HeightFog", "base_height", self.base_height, ANY)
+        check_range("HeightFog", "albedo", self.albedo, UNIT)
+        check_vector("HeightFog", "up", self.up)
         check_phase_and_extent("HeightFog", self.phase, self.extent)
+
+    def fog_interval(self, o, d, s):
+        return 0.0, s
 
     @property
     def g(self) -> Float[Array, ""]:

@@ -5,10 +5,12 @@ A bounce is a list of stages, each a module-level function of named structs:
     intersect -> free_flight -> direct_on_segment -> next_direction -> medium_vertex / surface_vertex
               -> direct_at_vertex -> update
 
-The stages talk to the scene only through the interfaces of its parts: the medium (`AbstractMedium`: free flight,
-weights, transmittance, scattering, phase function), the lights (`AbstractLight.sample_li` / `pdf_li`, the point-like
-lights' `lit_interval` and `position`, area lights' `emitted`), the BSDFs (`sample` / `eval` / `pdf`) and the warps of
-`_sampling`. What a scene lacks (fog, a kind of BSDF, area or point lights) is decided in Python and never compiled.
+The stages talk to the scene only through the interfaces of its parts: the shapes (`AbstractShape.intersect` /
+`any_hit`, over the groups of `_scene.pack`), the medium (`AbstractMedium`: free flight, weights, transmittance,
+scattering, phase function, `fog_interval`, `bounds`), the lights (every light's `AbstractLight.sample_li` /
+`pdf_li`; the point-like lights' `lit_interval` and `position` for equiangular sampling and the light-angle lobe;
+area lights' `emitted`), the BSDFs (`sample` / `eval` / `pdf`) and the warps of `_sampling`. What a scene lacks
+(fog, a kind of BSDF or shape, area or point lights) is decided in Python and never compiled.
 
 Estimators (`docs/estimators.md`) change only the *sampler*, the medium whose values decide where paths go
 (`sampling_medium`): a detached copy of the medium, a caller's fixed proposal, or the medium itself (reparameterized:
@@ -41,9 +43,7 @@ from ._sampling import (
     power_heuristic,
     to_direction,
 )
-from ._mesh import mesh_hit, mesh_nearest, mesh_occluded
 from ._scene import EMITTER_KIND, Packed, Scene
-from ._shapes import intersect_rectangles, intersect_spheres
 
 EPS_OFFSET = 1e-4
 """Offset (scene units) of rays leaving a surface, along the normal on the side they leave to."""
@@ -129,8 +129,8 @@ def sampling_medium(medium: AbstractMedium | None, options: SamplingOptions, pro
     if type(proposal) is not type(medium):
         raise TypeError(f"proposal must be a {type(medium).__name__} like the scene's medium, "
                         f"got {type(proposal).__name__}")
-    box = getattr(medium, "bounds", None)
-    if (box is None) != (getattr(proposal, "bounds", None) is None):
+    box = medium.bounds
+    if (box is None) != (proposal.bounds is None):
         raise ValueError("proposal must have bounds exactly where the scene's medium has them (its values sample; "
                          "the fog's box is the scene's)")
     if box is not None:  # the proposal's values sample the distances; the fog's geometry is the scene's
@@ -303,61 +303,48 @@ def rgb_safe_div(x, b) -> RGB:
 
 
 # -------------------------------------------------------------------------------------------------- geometry
-def _hit_distances(pk: Packed, o, d):
-    """Hit distances (> T_MIN, else inf) of the ray `o + t d` with every shape, in global shape order; None if none."""
-    ts = []
-    if pk.n_spheres:
-        ts.append(intersect_spheres(o, d, pk.sph_center, pk.sph_radius))
-    if pk.rect_center.shape[0]:
-        ts.append(intersect_rectangles(o, d, pk.rect_center, pk.rect_u, pk.rect_v, pk.rect_normal))
-    return jnp.concatenate(ts) if ts else None
+NO_NORMAL = (0.0, 0.0, 1.0)
+"""The normal a ray that meets nothing gets (never used: the path ends)."""
+
+
+def _stacked_hits(pk: Packed, o, d):
+    """The stacked groups' hit distances `(N,)` and normals `(N, 3)`, in global shape order (`vmap` of each
+    class's `intersect` over its stack); None if the scene has none."""
+    hits = [jax.vmap(lambda s: s.intersect(o, d, jnp.float32(jnp.inf)))(g.shapes) for g in pk.groups if g.stacked]
+    if not hits:
+        return None
+    return jnp.concatenate([h.t for h in hits]), jnp.concatenate([h.n for h in hits])
 
 
 def intersect(pk: Packed, o, d) -> Hit:
-    """Nearest hit of the ray `(o, d)`; the normal is the geometric front normal (a smooth mesh's: its shading
-    normal). Meshes (BVH traversal) are traced only when the scene has some."""
-    t_all = _hit_distances(pk, o, d)
-    if t_all is None and not pk.meshes:
-        return Hit(jnp.float32(jnp.inf), jnp.int32(0), jnp.array([0.0, 0.0, 1.0], jnp.float32), jnp.bool_(False), o)
-    if t_all is not None:
+    """Nearest hit of the ray `(o, d)` over every shape (`AbstractShape.intersect`): the stacked groups' nearest
+    by `argmin`, then each other shape's hit where it is nearer (it may stop its search at the distance found so
+    far). The normal is the shape's front normal (a smooth mesh's: its shading normal)."""
+    stacked = _stacked_hits(pk, o, d)
+    if stacked is not None:
+        t_all, n_all = stacked
         idx = jnp.argmin(t_all)
-        t = t_all[idx]
-    if not pk.meshes:
-        found = jnp.isfinite(t)
-        p = o + jnp.where(found, t, 0.0) * d
+        t, n = t_all[idx], n_all[idx]
     else:
-        p_analytic = o + jnp.where(jnp.isfinite(t), t, 0.0) * d if t_all is not None else o
-    normals = []
-    if pk.n_spheres:
-        normals.append(safe_normalize((p if not pk.meshes else p_analytic)[None, :] - pk.sph_center))
-    if pk.rect_center.shape[0]:
-        normals.append(pk.rect_normal)
-    if not pk.meshes:
-        return Hit(t, idx, jnp.concatenate(normals)[idx], found, p)
-    if t_all is not None:
-        n = jnp.concatenate(normals)[idx]
-    else:
-        t, idx, n = jnp.float32(jnp.inf), jnp.int32(0), jnp.array([0.0, 0.0, 1.0], jnp.float32)
-    for mesh, shape in zip(pk.meshes, pk.mesh_shape):
-        t_m, slot = mesh_nearest(mesh, o, d, jax.lax.stop_gradient(t))
-        hit_m = slot >= 0
-        t_exact, n_m = mesh_hit(mesh, o, d, jnp.maximum(slot, 0))
-        t = jnp.where(hit_m, t_exact, t)
-        idx = jnp.where(hit_m, shape, idx)
-        n = jnp.where(hit_m, n_m, n)
+        t, idx, n = jnp.float32(jnp.inf), jnp.int32(0), jnp.array(NO_NORMAL, jnp.float32)
+    for g in pk.groups:
+        if not g.stacked:
+            h = g.shapes.intersect(o, d, jax.lax.stop_gradient(t))
+            t, idx, n = jnp.where(h.found, h.t, t), jnp.where(h.found, g.start, idx), jnp.where(h.found, h.n, n)
     found = jnp.isfinite(t)
     p = o + jnp.where(found, t, 0.0) * d
     return Hit(t, idx, n, found, p)
 
 
 def occluded(pk: Packed, o, d, dist) -> Array:
-    """Whether anything blocks the segment from `o` along unit `d` before distance `dist` (slightly shortened)."""
-    t_all = _hit_distances(pk, o, d)
-    if t_all is None and not pk.meshes:
-        return jnp.bool_(False)
-    blocked = jnp.min(t_all) < dist * (1.0 - 1e-4) if t_all is not None else jnp.bool_(False)
-    for mesh in pk.meshes:
-        blocked = blocked | mesh_occluded(mesh, o, d, dist * (1.0 - 1e-4))
+    """Whether any shape blocks the segment from `o` along unit `d` before distance `dist` (slightly shortened):
+    `AbstractShape.any_hit`, `vmap`-ed over each stacked group."""
+    limit = dist * (1.0 - 1e-4)
+    stacked = [jax.vmap(lambda s: s.any_hit(o, d, limit))(g.shapes) for g in pk.groups if g.stacked]
+    blocked = jnp.any(jnp.concatenate(stacked)) if stacked else jnp.bool_(False)
+    for g in pk.groups:
+        if not g.stacked:
+            blocked = blocked | g.shapes.any_hit(o, d, limit)
     return blocked
 
 
@@ -432,16 +419,24 @@ def no_flight(hit: Hit) -> Segment:
 
 
 # ----------------------------------------------------------------------------------------------- direct light
-def direct_on_segment(tr: Tracer, state: PathState, seg: Segment, ok) -> RGB:
-    """Light scattered toward the camera along the segment from each point-like light, at its equiangular sample;
-    MIS (balance heuristic) with the path's own medium vertex."""
+def light_uniforms(tr: Tracer, i: int, U):
+    """The uniforms light `i` (in `scene.lights` order) gives its `sample_li`: its `n_dims` dimensions of the
+    bounce's row (`Layout.lights`)."""
+    return U[tr.layout.lights[i]:tr.layout.lights[i] + tr.scene.lights[i].n_dims]
+
+
+def direct_on_segment(tr: Tracer, state: PathState, seg: Segment, ok, U) -> RGB:
+    """Light scattered toward the camera along the segment from each point-like light (`sample_li` at its
+    equiangular sample); MIS (balance heuristic) with the path's own medium vertex."""
     med, pk, o, d = tr.medium, tr.pk, state.o, state.d
     L = RGB.of(jnp.float32(0.0))
+    scene_index = {id(lt): i for i, lt in enumerate(tr.scene.lights)}
     for j, (light, e, te) in enumerate(zip(tr.scene.point_lights, seg.eq, seg.t_eq)):
         p_eq = equiangular_pdf(e, te)
         p_eqs = tuple(p_eq if k == j else equiangular_pdf(ek, te) for k, ek in enumerate(seg.eq))
         xe = o + te * d
-        wi, dist, rgb, k = light.sample_scale(xe)  # the light's value is rgb * k
+        ls = light.sample_li(xe, light_uniforms(tr, scene_index[id(light)], U))  # a delta light: pdf 1
+        wi, dist, rgb, k = ls.wi, ls.dist, ls.rgb, ls.scale  # the light's value is rgb * k
         live = ok & state.in_medium & e.valid & (p_eq > 0)
         # double where: an unused sample's MIS denominator can be ~1e-30 (dense fog), whose 1/x^2 overflows
         p_all = jnp.where(live, p_eq + vertex_pdf(tr, o, d, seg.s, seg.q, seg.eq, te, p_eqs), 1.0)
@@ -463,19 +458,15 @@ def nee(tr: Tracer, U, p, shadow_o, response: Callable, dir_pdf: Callable, beta:
     `response(wi) -> RGB`: phase value or BSDF x cosine; `dir_pdf(wi)`: the density with which the vertex's own
     direction sampling picks `wi` (MIS with area lights); `seg`: for a medium vertex with equiangular segments, the
     balance-heuristic weight against the equiangular technique toward each point-like light."""
-    scene, ly = tr.scene, tr.layout
+    scene = tr.scene
     L = RGB.of(jnp.float32(0.0))
-    point_index = {id(lt): j for j, lt in enumerate(scene.point_lights)}
+    point_index = {id(lt): j for j, lt in enumerate(scene.point_lights)}  # their equiangular techniques
     order = [i for i, lt in enumerate(scene.lights) if lt.is_delta] + [i for i, lt in enumerate(scene.lights)
                                                                        if not lt.is_delta]
     for i in order:
         light = scene.lights[i]
-        if id(light) in point_index:  # the value as rgb * scale (a spot's profile: a scalar)
-            wi, dist, rgb, scale = light.sample_scale(p)
-            pdf = jnp.float32(1.0)
-        else:
-            ls = light.sample_li(p, U[ly.lights[i]:ly.lights[i] + light.n_dims])
-            wi, dist, rgb, scale, pdf = ls.wi, ls.dist, ls.value, jnp.float32(1.0), ls.pdf
+        # the value as rgb * scale (a spot's profile and 1 / dist^2: a scalar)
+        wi, dist, rgb, scale, pdf = light.sample_li(p, light_uniforms(tr, i, U))
         vis = ~occluded(tr.pk, shadow_o, wi, dist)
         if light.is_delta:
             weight, use = jnp.float32(1.0), ok & vis
@@ -580,7 +571,7 @@ def emission(tr: Tracer, state: PathState, hit: Hit, seg: Segment) -> RGB:
     for light, shape in zip(tr.scene.area_lights, tr.pk.emitter_shape):
         w = jnp.where(state.specular, 1.0, power_heuristic(state.pdf_dir, light.pdf_li(state.o, state.d, hit.t)))
         w = computed_once(tr, w)  # every channel reads it
-        L = L + where_rgb(surf & (hit.idx == shape), state.beta * seg.w_surf * light.emitted(state.d) * w, 0.0)
+        L = L + where_rgb(surf & (hit.idx == shape), state.beta * seg.w_surf * light.emitted(state.d, hit.n) * w, 0.0)
     return L
 
 
@@ -703,7 +694,7 @@ def bounce(tr: Tracer, state: PathState, b, U, last=None) -> PathState:
     seg = computed_once(tr, free_flight(tr, state, hit, U) if tr.medium is not None else no_flight(hit))
     L = state.L
     if tr.equiangular:
-        L = L + direct_on_segment(tr, state, seg, nee_ok)
+        L = L + direct_on_segment(tr, state, seg, nee_ok, U)
     L = L + emission(tr, state, hit, seg) + direct_at_vertex(tr, state, hit, seg, nee_ok, U)
 
     def continuation(L):

@@ -1,14 +1,18 @@
 """Lights behind one interface: `sample_li`, `pdf_li`, and for point-like lights the lit interval of a ray.
 
-- `sample_li(p, u) -> LightSample(wi, dist, value, pdf)`: a direction `wi` from the point `p` toward the light, the
-  shadow-ray length `dist`, the unoccluded, untransmitted `value` (RGB) and the solid-angle `pdf` of `wi`; the
-  contribution of the sample is `f(wi) * value * T(dist) / pdf`. Delta lights (point, spot) have `pdf = 1` and
-  `value = I(-wi) / dist^2` (irradiance on a surface facing the light); area lights have `value = L_e`.
+- `sample_li(p, u) -> LightSample(wi, dist, rgb, scale, pdf)`: a direction `wi` from the point `p` toward the light,
+  the shadow-ray length `dist`, the unoccluded, untransmitted value `value = rgb * scale` (an RGB part and a scalar
+  part) and the solid-angle `pdf` of `wi`; the contribution of the sample is `f(wi) * value * T(dist) / pdf`. Delta
+  lights (point, spot, directional) have `pdf = 1`; point and spot lights have `value = I(-wi) / dist^2`
+  (irradiance on a surface facing the light) with the angular profile and `1 / dist^2` in the scalar `scale`; area
+  lights have `value = L_e`.
 - `pdf_li(p, wi, dist)`: the density with which `sample_li` picks `wi` (0 for delta lights), for MIS.
 - Point-like lights (`AbstractPointLikeLight`: point and spot) have a `position` (the centre that equiangular
   sampling and the light-angle lobe aim at) and `lit_interval(o, d)`: where along the ray `o + t d` the light
   shines at all (the spot's cone), so equiangular samples are spent only there.
-- Area lights are also surfaces: `emitted(d)` is the radiance a camera ray travelling along `d` sees on them.
+- Area lights (`AbstractAreaLight`) are also surfaces: `shape` (an `AbstractShape`, black: it reflects nothing) is
+  intersected with the scene's shapes, `emitted(d, n)` is the radiance a ray travelling along `d` sees where it hits
+  it, and `sample_li` samples the shape by area (`AbstractShape.sample_area`).
 
 `n_dims` (static) is the number of uniforms `sample_li` consumes. Point and spot lights are delta lights: invisible
 to the camera and reached only by next-event estimation.
@@ -25,19 +29,30 @@ from equinox import AbstractClassVar, AbstractVar
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._fields import check_nonzero, check_range, concrete, rgb, scalar, vec3
-from ._math import atan2, cross, dot, safe_div, safe_normalize, safe_sqrt
+from ._bsdf import Diffuse
+from ._fields import rgb, scalar, vec3
+from ._math import atan2, dot, safe_div, safe_normalize, safe_sqrt
+from ._shapes import AbstractShape, Rectangle, check_perpendicular, solid_angle_pdf
+from ._validate import ANY, NON_NEGATIVE, SPOT_CUTOFF_RANGE, POSITIVE, check_range, check_vector, concrete_values
 
 
 class LightSample(NamedTuple):
-    """`wi` (unit, from the shading point toward the light), `dist` (scene units), `value` (RGB: irradiance factor
-    `I / dist^2` for delta lights, radiance `L_e` for area lights; 0 where the sample is invalid) and `pdf` (1/sr;
-    1 for delta lights; 0 where invalid)."""
+    """`wi` (unit, from the shading point toward the light), `dist` (scene units), the value in two parts, `rgb`
+    (RGB) and `scale` (a scalar; `value = rgb * scale`: the irradiance factor `I / dist^2` of a point-like light
+    as its colour and its angular profile over `dist^2`, so that the tracer computes the scalar once for the three
+    channels; `rgb = L_e`, `scale = 1` for area lights; 0 where the sample is invalid) and `pdf` (1/sr; 1 for delta
+    lights; 0 where invalid)."""
 
     wi: Float[Array, "3"]
     dist: Float[Array, ""]
-    value: Float[Array, "3"]
+    rgb: Float[Array, "3"]
+    scale: Float[Array, ""]
     pdf: Float[Array, ""]
+
+    @property
+    def value(self) -> Float[Array, "3"]:
+        """The sample's unoccluded, untransmitted value `rgb * scale` (RGB)."""
+        return self.rgb * self.scale
 
 
 class AbstractLight(eqx.Module):
@@ -56,39 +71,38 @@ class AbstractLight(eqx.Module):
 
 
 class AbstractPointLikeLight(AbstractLight):
-    """A delta light at a point: `position`; its radiant intensity in each direction (`intensity_toward`)."""
+    """A delta light at a point: `position`; its radiant intensity in each direction as a colour and an angular
+    profile (`intensity_parts`); where along a ray it shines at all (`lit_interval`). `sample_li` / `pdf_li` follow
+    from them (final)."""
 
     position: AbstractVar[Float[Array, "3"]]
     is_delta: ClassVar[bool] = True
     n_dims: ClassVar[int] = 0
 
     @abc.abstractmethod
-    def intensity_toward(self, w: Float[Array, "3"]) -> Float[Array, "3"]:
-        """RGB radiant intensity (W/sr) the light sends along the unit direction `w` (away from the light)."""
-
     def intensity_parts(self, w: Float[Array, "3"]) -> tuple[Float[Array, "3"], Float[Array, ""]]:
-        """`(rgb, scale)` with `intensity_toward(w) = rgb * scale`: the light's colour (W/sr) and its angular profile
-        (a scalar), apart, so that the tracer computes the profile once for the three channels. By default the
-        whole intensity and 1; lights whose colour does not depend on `w` return their intensity and profile."""
-        return self.intensity_toward(w), jnp.float32(1.0)
-
-    def sample_scale(self, p: Float[Array, "3"]):
-        """`(wi, dist, rgb, scale)`: `sample_li(p)` with its value as `rgb * scale` (`intensity_parts` of the
-        direction toward `p`, the 1/dist^2 in `scale`)."""
-        v = self.position - p
-        dist2 = dot(v, v)
-        wi = safe_normalize(v)
-        rgb, profile = self.intensity_parts(-wi)
-        return wi, safe_sqrt(dist2), rgb, safe_div(profile, dist2)
+        """`(rgb, scale)`: the radiant intensity (W/sr) the light sends along the unit direction `w` (away from the
+        light) is `rgb * scale`; a light whose colour does not depend on `w` returns its colour and its angular
+        profile (a scalar, computed once for the three channels), one whose colour does returns it and 1."""
 
     @abc.abstractmethod
     def lit_interval(self, o: Float[Array, "3"], d: Float[Array, "3"]) -> tuple[Float[Array, ""], Float[Array, ""]]:
         """`(t0, t1)`: the light shines on the line `o + t d` only for `t0 <= t <= t1` (possibly empty: t0 > t1;
         possibly infinite)."""
 
+    def intensity_toward(self, w: Float[Array, "3"]) -> Float[Array, "3"]:
+        """RGB radiant intensity (W/sr) the light sends along the unit direction `w`: `rgb * scale`."""
+        colour, profile = self.intensity_parts(w)
+        return colour * profile
+
     def sample_li(self, p, u=None) -> LightSample:
-        wi, dist, rgb, scale = self.sample_scale(p)
-        return LightSample(wi, dist, rgb * scale, jnp.float32(1.0))
+        """The direction to `position` (no uniforms), `rgb` the colour toward `p` and `scale` its profile over the
+        squared distance."""
+        v = self.position - p
+        dist2 = dot(v, v)
+        wi = safe_normalize(v)
+        colour, profile = self.intensity_parts(-wi)
+        return LightSample(wi, safe_sqrt(dist2), colour, safe_div(profile, dist2), jnp.float32(1.0))
 
     def pdf_li(self, p, wi, dist):
         return jnp.float32(0.0)
@@ -101,11 +115,8 @@ class PointLight(AbstractPointLikeLight):
     intensity: Float[Array, "3"] = eqx.field(converter=rgb)
 
     def __check_init__(self):
-        check_range("PointLight", "position", self.position)
-        check_range("PointLight", "intensity", self.intensity, 0.0)
-
-    def intensity_toward(self, w):
-        return self.intensity
+        check_range("PointLight", "position", self.position, ANY)
+        check_range("PointLight", "intensity", self.intensity, NON_NEGATIVE)
 
     def intensity_parts(self, w):
         return self.intensity, jnp.float32(1.0)
@@ -142,17 +153,15 @@ class SpotLight(AbstractPointLikeLight):
         self.beam_width = spot_beam_width_default(cutoff_angle) if beam_width is None else beam_width
 
     def __check_init__(self):
-        check_range("SpotLight", "position", self.position)
-        check_nonzero("SpotLight", "direction", self.direction)
-        check_range("SpotLight", "intensity", self.intensity, 0.0)
-        check_range("SpotLight", "cutoff_angle", self.cutoff_angle, 0.0, 90.0, lo_open=True, hi_open=True)
-        check_range("SpotLight", "beam_width", self.beam_width, 0.0, None, lo_open=True)
-        cut, beam = concrete(self.cutoff_angle), concrete(self.beam_width)
-        if cut is not None and beam is not None and beam > cut:
-            raise ValueError(f"SpotLight.beam_width = {float(beam)} must not exceed cutoff_angle = {float(cut)}")
-
-    def intensity_toward(self, w):
-        return self.intensity * spot_falloff(dot(w, self.direction), self.cutoff_angle, self.beam_width)
+        check_range("SpotLight", "position", self.position, ANY)
+        check_vector("SpotLight", "direction", self.direction)
+        check_range("SpotLight", "intensity", self.intensity, NON_NEGATIVE)
+        check_range("SpotLight", "cutoff_angle", self.cutoff_angle, SPOT_CUTOFF_RANGE)
+        check_range("SpotLight", "beam_width", self.beam_width, POSITIVE)
+        vals = concrete_values(self.cutoff_angle, self.beam_width)
+        if vals is not None and vals[1] > vals[0]:
+            raise ValueError(f"SpotLight.beam_width = {float(vals[1])} must not exceed cutoff_angle = "
+                             f"{float(vals[0])}")
 
     def intensity_parts(self, w):
         return self.intensity, spot_falloff(dot(w, self.direction), self.cutoff_angle, self.beam_width)
@@ -161,7 +170,25 @@ class SpotLight(AbstractPointLikeLight):
         return spot_cone_interval(self.position, self.direction, self.cutoff_angle, o, d)
 
 
-class AreaLight(AbstractLight):
+class AbstractAreaLight(AbstractLight):
+    """A light that is also a surface: its `shape` is intersected with the scene's shapes (a black surface: a path
+    that hits it ends there) and seen by the camera; `emitted(d, n)` is the radiance a ray travelling along `d` sees
+    where it hits the shape with front normal `n`. Not a delta light."""
+
+    is_delta: ClassVar[bool] = False
+
+    @property
+    @abc.abstractmethod
+    def shape(self) -> AbstractShape:
+        """The emitting surface, as a shape (its `bsdf` black)."""
+
+    @abc.abstractmethod
+    def emitted(self, d: Float[Array, "3"], n: Float[Array, "3"]) -> Float[Array, "3"]:
+        """Radiance (RGB, W/(m^2 sr)) seen by a ray travelling along `d` that hits the light where its front normal
+        is `n`."""
+
+
+class AreaLight(AbstractAreaLight):
     """One-sided emitting rectangle: `center`, perpendicular full edges `edge_u`, `edge_v` (scene units), emitted
     `radiance` (W/(m^2 sr), RGB >= 0) on the front face `normalize(cross(edge_u, edge_v))`. It is also a black
     surface that blocks light (in Mitsuba: give its shape a `diffuse` BSDF with reflectance 0). Sampled uniformly
@@ -171,40 +198,43 @@ class AreaLight(AbstractLight):
     edge_u: Float[Array, "3"] = eqx.field(converter=vec3)
     edge_v: Float[Array, "3"] = eqx.field(converter=vec3)
     radiance: Float[Array, "3"] = eqx.field(converter=rgb)
-    is_delta: ClassVar[bool] = False
     n_dims: ClassVar[int] = 2
 
     def __check_init__(self):
-        check_range("AreaLight", "center", self.center)
-        check_nonzero("AreaLight", "edge_u", self.edge_u)
-        check_nonzero("AreaLight", "edge_v", self.edge_v)
-        check_range("AreaLight", "radiance", self.radiance, 0.0)
+        check_range("AreaLight", "center", self.center, ANY)
+        check_vector("AreaLight", "edge_u", self.edge_u)
+        check_vector("AreaLight", "edge_v", self.edge_v)
+        check_perpendicular("AreaLight", self.edge_u, self.edge_v)
+        check_range("AreaLight", "radiance", self.radiance, NON_NEGATIVE)
+
+    @property
+    def shape(self) -> Rectangle:
+        return Rectangle(self.center, self.edge_u, self.edge_v, bsdf=Diffuse(0.0))
 
     @property
     def normal(self) -> Float[Array, "3"]:
-        return safe_normalize(cross(self.edge_u, self.edge_v))
+        """The unit front normal `normalize(cross(edge_u, edge_v))`."""
+        return self.shape.normal
 
     @property
     def area(self) -> Float[Array, ""]:
-        return jnp.linalg.norm(cross(self.edge_u, self.edge_v))
+        return self.shape.area
 
     def sample_li(self, p, u) -> LightSample:
-        y = self.center + (u[0] - 0.5) * self.edge_u + (u[1] - 0.5) * self.edge_v
-        v = y - p
+        s = self.shape.sample_area(u)
+        v = s.p - p
         dist2 = dot(v, v)
         wi = safe_normalize(v)
-        cos_l = -dot(wi, self.normal)
-        front = cos_l > 0
-        pdf = jnp.where(front, safe_div(dist2, self.area * cos_l), 0.0)
-        return LightSample(wi, safe_sqrt(dist2), jnp.where(front, self.radiance, 0.0), pdf)
+        cos_l = -dot(wi, s.n)
+        pdf = solid_angle_pdf(s.pdf, dist2, cos_l)
+        return LightSample(wi, safe_sqrt(dist2), jnp.where(cos_l > 0, self.radiance, 0.0), jnp.float32(1.0), pdf)
 
     def pdf_li(self, p, wi, dist):
-        cos_l = -dot(wi, self.normal)
-        return jnp.where(cos_l > 0, safe_div(dist * dist, self.area * cos_l), 0.0)
+        shape = self.shape
+        return solid_angle_pdf(shape.pdf_area(p + dist * wi), dist * dist, -dot(wi, shape.normal))
 
-    def emitted(self, d: Float[Array, "3"]) -> Float[Array, "3"]:
-        """Radiance seen by a camera ray travelling along `d` that hits the light: `radiance` on the front face."""
-        return jnp.where(dot(d, self.normal) < 0, self.radiance, 0.0)
+    def emitted(self, d, n):
+        return jnp.where(dot(d, n) < 0, self.radiance, 0.0)
 
 
 # ---------------------------------------------------------------------------------------------------- pure math
@@ -264,11 +294,12 @@ class DirectionalLight(AbstractLight):
     n_dims: ClassVar[int] = 0
 
     def __check_init__(self):
-        check_nonzero("DirectionalLight", "direction", self.direction)
-        check_range("DirectionalLight", "irradiance", self.irradiance, 0.0)
+        check_vector("DirectionalLight", "direction", self.direction)
+        check_range("DirectionalLight", "irradiance", self.irradiance, NON_NEGATIVE)
 
     def sample_li(self, p, u=None) -> LightSample:
-        return LightSample(-self.direction, jnp.float32(jnp.inf), self.irradiance, jnp.float32(1.0))
+        one = jnp.float32(1.0)
+        return LightSample(-self.direction, jnp.float32(jnp.inf), self.irradiance, one, one)
 
     def pdf_li(self, p, wi, dist):
         return jnp.float32(0.0)

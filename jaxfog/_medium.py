@@ -45,10 +45,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._fields import check_range, concrete, rgb
+from ._fields import concrete, rgb
 from ._math import finite_or, one_minus_exp_neg
 from ._phase import AbstractPhaseFunction, HenyeyGreenstein
 from ._sampling import sample_truncated_exponential
+from ._validate import NON_NEGATIVE, UNIT, check_range
 
 Q_MIN = 0.05
 """Smallest probability of choosing the medium branch on a segment (no derivative; a variance/cost trade-off)."""
@@ -85,6 +86,9 @@ class AbstractMedium(eqx.Module):
 
     phase: AbstractVar[AbstractPhaseFunction]
     extent: AbstractVar[float]
+    bounds: AbstractVar[tuple[Float[Array, "3"], Float[Array, "3"]] | None]
+    """The axis-aligned box `(box_min, box_max)` (scene units) the fog fills, or None: it fills space (static
+    structure: a medium with a box compiles the box test, one without compiles none)."""
 
     @abc.abstractmethod
     def sample_free_flight(self, o, d, s, ends_on_surface, active, u, u_channel) -> FlightSample:
@@ -118,10 +122,10 @@ class AbstractMedium(eqx.Module):
     def scattering(self, p) -> Float[Array, "3"]:
         """Scattering coefficient `sigma_s` at the point `p`, RGB, 1/scene unit."""
 
+    @abc.abstractmethod
     def fog_interval(self, o, d, s) -> tuple[Float[Array, ""], Float[Array, ""]]:
-        """The part `[a, b]` of the segment `[0, s]` where there is fog (`a >= b`: none); the whole segment for a
-        medium that fills space. The tracer clips its equiangular samples to it."""
-        return 0.0, s
+        """The part `[a, b]` of the segment `[0, s]` where there is fog (`a >= b`: none); `(0, s)` for a medium
+        that fills space. The tracer clips its equiangular samples to it."""
 
 
 def check_phase_and_extent(owner: str, phase, extent) -> None:
@@ -174,8 +178,8 @@ class HomogeneousMedium(AbstractMedium):
         self.bounds = None if bounds is None else check_bounds("HomogeneousMedium", bounds)
 
     def __check_init__(self):
-        check_range("HomogeneousMedium", "sigma_t", self.sigma_t, 0.0)
-        check_range("HomogeneousMedium", "albedo", self.albedo, 0.0, 1.0)
+        check_range("HomogeneousMedium", "sigma_t", self.sigma_t, NON_NEGATIVE)
+        check_range("HomogeneousMedium", "albedo", self.albedo, UNIT)
         check_phase_and_extent("HomogeneousMedium", self.phase, self.extent)
 
     @property

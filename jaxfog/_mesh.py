@@ -32,7 +32,7 @@ from __future__ import annotations
 import functools
 import math
 import os
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -41,7 +41,10 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._bsdf import AbstractBSDF
-from ._math import cross, dot, safe_div, safe_normalize
+from ._math import cross, dot, safe_div, safe_norm, safe_normalize
+from ._sampling import uniform_triangle
+from ._shapes import AbstractShape, AreaSample, ShapeHit
+from ._validate import concrete_values, polygons_in_box
 
 __all__ = ["Mesh", "MeshError", "MeshData", "read_mesh", "write_ply", "build_bvh", "transform_matrix"]
 
@@ -616,9 +619,11 @@ def _array_arg(x, name: str, path: str, kind) -> np.ndarray:
     return a.astype(np.float64)
 
 
-class Mesh(eqx.Module):
+class Mesh(AbstractShape):
     """A triangle mesh with its BVH and its `bsdf` (any BSDF; one-sided BSDFs work on the front faces, which are
-    counter-clockwise seen from the front).
+    counter-clockwise seen from the front). An `AbstractShape` that is intersected on its own (not `stacked`):
+    nearest and any hit by BVH traversal (`mesh_nearest`, `mesh_occluded`), the hit's distance and normal from the
+    hit triangle (`mesh_hit`); area sampling picks a triangle by its area.
 
     Build it with `Mesh.from_arrays(vertices, faces, bsdf, normals=None, smooth=False)` or `Mesh.from_file(path,
     bsdf, to_world=None, smooth=False)`. The geometry is fixed once built (its arrays are the BVH's leaf order and
@@ -643,11 +648,56 @@ class Mesh(eqx.Module):
     stack_size: int = eqx.field(static=True)
     n_leaves: int = eqx.field(static=True)
     n_faces: int = eqx.field(static=True)
+    stacked: ClassVar[bool] = False
 
     @property
     def leaves(self) -> Float[Array, "Nl 3 3 4"]:
         """The leaf rows as (leaves, 3 vertices, 3 coordinates, 4 lanes)."""
         return self.rows[: self.n_leaves].reshape(self.n_leaves, 3, 3, WIDTH)
+
+    # ------------------------------------------------------------------------------------------ AbstractShape
+    def intersect(self, o, d, t_max) -> ShapeHit:
+        _, slot = mesh_nearest(self, o, d, t_max)
+        found = slot >= 0
+        t, n = mesh_hit(self, o, d, jnp.maximum(slot, 0))
+        return ShapeHit(jnp.where(found, t, jnp.inf), n, found)
+
+    def any_hit(self, o, d, t_max):
+        return mesh_occluded(self, o, d, t_max)
+
+    def bounds(self):
+        return jnp.asarray(self.box[:3], jnp.float32), jnp.asarray(self.box[3:], jnp.float32)
+
+    def _triangles(self):
+        """Every leaf slot's triangle `(slots, 3 vertices, 3)` (unused slots: zero, of area 0), its front normal
+        direction `cross(v1 - v0, v2 - v0)` times the winding sign `(slots, 3)`, and its area `(slots,)`."""
+        tri = jax.lax.stop_gradient(self.leaves).transpose(0, 3, 1, 2).reshape(-1, 3, 3)
+        ng = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) * self.wind.reshape(-1, 1)
+        return tri, ng, 0.5 * safe_norm(ng)
+
+    def sample_area(self, u) -> AreaSample:
+        """A triangle with probability proportional to its area (`u[0]` against the areas' running sum, then
+        rescaled into that triangle's share), then a point uniform in it (`_sampling.uniform_triangle`)."""
+        tri, ng, area = self._triangles()
+        cdf = jnp.cumsum(area)
+        total = cdf[-1]
+        x = u[0] * total
+        k = jnp.clip(jnp.searchsorted(cdf, x, side="right"), 0, area.shape[0] - 1)
+        u0 = jnp.clip(safe_div(x - (cdf[k] - area[k]), area[k]), 0.0, 1.0)
+        b0, b1, b2 = uniform_triangle(u0, u[1])
+        p = b0 * tri[k, 0] + b1 * tri[k, 1] + b2 * tri[k, 2]
+        return AreaSample(p, safe_normalize(ng[k]), 1.0 / total)
+
+    def pdf_area(self, p):
+        return 1.0 / jnp.sum(self._triangles()[2])
+
+    def box_relation(self, lo, hi):
+        vals = concrete_values(self.rows, lo, hi)
+        if vals is None:
+            return None
+        used = np.asarray(self.face) >= 0
+        tri = np.asarray(self.leaves, np.float64).transpose(0, 3, 1, 2).reshape(-1, 3, 3)[used]
+        return polygons_in_box(tri, vals[1], vals[2])
 
     @classmethod
     def from_arrays(cls, vertices, faces, bsdf, normals=None, smooth: bool = False,

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from equinox import AbstractClassVar
 from jaxtyping import Array, Float
 
-from ._fields import check_range, scalar
+from ._fields import scalar
 from ._math import one_minus_cos_between
 from ._sampling import (
     Polar,
@@ -39,6 +39,7 @@ from ._sampling import (
     rayleigh_sample,
     to_direction,
 )
+from ._validate import DRAINE_ALPHA_RANGE, DROPLET_DIAMETER_RANGE, G_RANGE, UNIT, check_range
 
 __all__ = ["AbstractPhaseFunction", "HenyeyGreenstein", "Rayleigh", "Draine", "TwoTermHG", "Droplet",
            "droplet_parameters", "PhaseSample", "hg_pdf", "hg_sample"]
@@ -107,7 +108,7 @@ class HenyeyGreenstein(AbstractPhaseFunction):
     sampled_exactly: ClassVar[bool] = True
 
     def __check_init__(self):
-        check_range("HenyeyGreenstein", "g", self.g, -1.0, 1.0, lo_open=True, hi_open=True)
+        check_range("HenyeyGreenstein", "g", self.g, G_RANGE)
 
     def sample_polar(self, u):
         return Polar(*hg_sample(u, self.g))
@@ -147,8 +148,8 @@ class Draine(AbstractPhaseFunction):
     sampled_exactly: ClassVar[bool] = False
 
     def __check_init__(self):
-        check_range("Draine", "g", self.g, -1.0, 1.0, lo_open=True, hi_open=True)
-        check_range("Draine", "alpha", self.alpha, 0.0, 1000.0, lo_open=True)
+        check_range("Draine", "g", self.g, G_RANGE)
+        check_range("Draine", "alpha", self.alpha, DRAINE_ALPHA_RANGE)
 
     def sample_polar(self, u):
         return draine_sample(u, self.g, self.alpha)
@@ -177,9 +178,9 @@ class TwoTermHG(AbstractPhaseFunction):
     sampled_exactly: ClassVar[bool] = False
 
     def __check_init__(self):
-        check_range("TwoTermHG", "g1", self.g1, -1.0, 1.0, lo_open=True, hi_open=True)
-        check_range("TwoTermHG", "g2", self.g2, -1.0, 1.0, lo_open=True, hi_open=True)
-        check_range("TwoTermHG", "w", self.w, 0.0, 1.0)
+        check_range("TwoTermHG", "g1", self.g1, G_RANGE)
+        check_range("TwoTermHG", "g2", self.g2, G_RANGE)
+        check_range("TwoTermHG", "w", self.w, UNIT)
 
     def _mix(self, one_minus_cos, w):
         return w * hg_pdf(one_minus_cos, self.g1) + (1.0 - w) * hg_pdf(one_minus_cos, self.g2)
@@ -194,9 +195,6 @@ class TwoTermHG(AbstractPhaseFunction):
     def pdf_polar(self, one_minus_cos):
         return self._mix(one_minus_cos, jax.lax.stop_gradient(self.w))
 
-
-DROPLET_DIAMETER_RANGE = (0.0, 50.0)
-"""Diameters (µm) covered by the fits of Jendersie & d'Eon (2023): (0, 50]."""
 
 DROPLET_PIECES = (0.1, 1.5, 5.0)
 """The fits' range boundaries (µm): d <= 0.1, 0.1 < d < 1.5, 1.5 <= d < 5, 5 <= d <= 50. The parameters are smooth
@@ -263,7 +261,7 @@ class Droplet(AbstractPhaseFunction):
     sharp_forward_peak: ClassVar[bool] = True
 
     def __check_init__(self):
-        check_range("Droplet", "diameter", self.diameter, *DROPLET_DIAMETER_RANGE, lo_open=True)
+        check_range("Droplet", "diameter", self.diameter, DROPLET_DIAMETER_RANGE)
 
     @property
     def parameters(self) -> tuple[Float[Array, ""], ...]:

@@ -48,6 +48,22 @@ def to_direction(polar: Polar, u_azimuth: Float[Array, ""], axis: Float[Array, "
     return direction_from_cos(polar.one_minus_cos, polar.one_plus_cos, 2.0 * PI * u_azimuth, axis)
 
 
+# ------------------------------------------------------------------------------------------- uniform on surfaces
+def uniform_sphere_polar(u: Float[Array, ""]) -> Polar:
+    """Polar angle of a direction uniform over the whole sphere, u in [0, 1): `cos theta = 1 - 2u`, density
+    `1 / (4 pi)` over directions (with a uniform azimuth)."""
+    return Polar(2.0 * u, 2.0 - 2.0 * u)
+
+
+def uniform_triangle(u0: Float[Array, ""], u1: Float[Array, ""]) -> tuple[Float[Array, ""], ...]:
+    """Barycentric coordinates `(b0, b1, b2)` of a point uniform by area over a triangle, from u0, u1 in [0, 1):
+    `b0 = 1 - sqrt(u0)`, `b1 = u1 sqrt(u0)` (the square-root warp; density 1 / area)."""
+    su = safe_sqrt(u0)
+    b0 = 1.0 - su
+    b1 = u1 * su
+    return b0, b1, 1.0 - b0 - b1
+
+
 # --------------------------------------------------------------------------------------------------- cosine lobe
 def cosine_sample(u: Float[Array, ""]) -> Polar:
     """Cosine-weighted polar angle around a normal, u in [0, 1): `cos theta = sqrt(1 - u)`, pdf `cos theta / pi`

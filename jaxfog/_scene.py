@@ -1,4 +1,4 @@
-"""The scene: camera, shapes, lights, optional medium, path length; and its packing into stacked arrays.
+"""The scene: camera, shapes, lights, optional medium, path length; and its packing into groups of shapes.
 
 A `Scene`'s *structure* (how many shapes of which kind, which BSDF kinds, which light kinds, whether there is fog,
 `max_depth`) is static Python, so the compiled program contains only what the scene uses. Its physical values are
@@ -14,28 +14,28 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
 
-from ._bsdf import AbstractBSDF
+from ._bsdf import AbstractBSDF, Glass
 from ._camera import Camera
-from ._lights import AbstractLight, AbstractPointLikeLight, AreaLight
+from ._lights import AbstractAreaLight, AbstractLight, AbstractPointLikeLight
 from ._medium import AbstractMedium
-from ._mesh import Mesh
-from ._shapes import Rectangle, Sphere
+from ._shapes import AbstractShape
+from ._validate import RR_DEPTH_RANGE, check_range
 
 EMITTER_KIND = -1
-"""`Packed.bsdf_kind` of the black rectangles that stand for area lights."""
+"""`Packed.bsdf_kind` of the black shapes that stand for area lights."""
 
 
 class Scene(eqx.Module):
     """Everything the renderer needs.
 
-    **Fields:** `camera`; `shapes`: tuple of `Sphere`/`Rectangle`/`Mesh`; `lights`: tuple of lights (`PointLight`,
-    `SpotLight`, `AreaLight`, `DirectionalLight`); `medium`: a medium (`HomogeneousMedium`, `HeightFog`) or None
+    **Fields:** `camera`; `shapes`: tuple of shapes (`Sphere`, `Rectangle`, `Mesh`: any `AbstractShape`; a glass
+    one wholly inside or wholly outside the medium's `bounds`, if it has a box); `lights`: tuple of lights
+    (`PointLight`, `SpotLight`, `AreaLight`, `DirectionalLight`); `medium`: a medium (`HomogeneousMedium`, `HeightFog`) or None
     (no fog: no medium code is compiled); `max_depth`: static int >= 1, the longest path in segments from the camera
     to a light, the light-sampling segment included (docs/conventions.md; 8 is the default, 2 is single scattering),
-    or -1 for paths of any length, ended by Russian roulette from the `rr_depth`-th vertex on (static int >= 1,
-    default 5, as in Mitsuba; fixed depths use no Russian roulette).
+    or -1 for paths of any length, ended by Russian roulette from the `rr_depth`-th vertex on (static int in
+    [1, 1024], `RR_DEPTH_RANGE`; default 5, as in Mitsuba; fixed depths use no Russian roulette).
     """
 
     camera: Camera
@@ -49,11 +49,13 @@ class Scene(eqx.Module):
         if not isinstance(self.max_depth, int) or isinstance(self.max_depth, bool) or not (
                 self.max_depth >= 1 or self.max_depth == -1):
             raise ValueError(f"Scene.max_depth must be an integer >= 1, or -1 (no limit), got {self.max_depth!r}")
-        if not isinstance(self.rr_depth, int) or isinstance(self.rr_depth, bool) or self.rr_depth < 1:
-            raise ValueError(f"Scene.rr_depth must be an integer >= 1, got {self.rr_depth!r}")
+        if not isinstance(self.rr_depth, int) or isinstance(self.rr_depth, bool):
+            raise ValueError(f"Scene.rr_depth must be an integer in {RR_DEPTH_RANGE.text()}, got {self.rr_depth!r}")
+        # a hard range (no --force): with max_depth -1 every path that neither escapes nor is absorbed runs to it
+        check_range("Scene", "rr_depth", self.rr_depth, RR_DEPTH_RANGE)
         for s in self.shapes:
-            if not isinstance(s, (Sphere, Rectangle, Mesh)):
-                raise TypeError(f"shapes must be Sphere, Rectangle or Mesh, got {type(s).__name__}")
+            if not isinstance(s, AbstractShape):
+                raise TypeError(f"shapes must be shapes (Sphere, Rectangle, Mesh), got {type(s).__name__}")
             if not isinstance(s.bsdf, AbstractBSDF):
                 raise TypeError(f"a shape's bsdf must be a BSDF (Diffuse, Mirror, Glass), got {type(s.bsdf).__name__}")
         for light in self.lights:
@@ -61,6 +63,20 @@ class Scene(eqx.Module):
                 raise TypeError(f"lights must be lights (PointLight, SpotLight, AreaLight, DirectionalLight), got {type(light).__name__}")
         if self.medium is not None and not isinstance(self.medium, AbstractMedium):
             raise TypeError(f"medium must be a medium (HomogeneousMedium, HeightFog) or None, got {type(self.medium).__name__}")
+        self._check_glass_in_fog_box()
+
+    def _check_glass_in_fog_box(self):
+        """Glass objects lie wholly inside or wholly outside a bounded fog's box (the fog does not enter glass, and
+        a glass object across the box's face would need the fog inside it; docs/conventions.md)."""
+        box = None if self.medium is None else self.medium.bounds
+        if box is None:
+            return
+        for i, s in enumerate(self.shapes):
+            if isinstance(s.bsdf, Glass) and s.box_relation(*box) == "straddles":
+                lo, hi = (np.asarray(b, np.float64).tolist() for b in box)
+                raise ValueError(f"Scene.shapes[{i}]: a glass {type(s).__name__} straddles a face of the medium's "
+                                 f"bounds (min {lo}, max {hi}); expected a glass object wholly inside or wholly "
+                                 f"outside the fog's box (the fog does not enter glass)")
 
     @property
     def delta_lights(self) -> tuple:
@@ -74,7 +90,8 @@ class Scene(eqx.Module):
 
     @property
     def area_lights(self) -> tuple:
-        return tuple(lt for lt in self.lights if isinstance(lt, AreaLight))
+        """Lights that are also surfaces (`AbstractAreaLight`): their shapes are intersected with the scene's."""
+        return tuple(lt for lt in self.lights if isinstance(lt, AbstractAreaLight))
 
     def replace_medium(self, **values) -> "Scene":
         """A copy with medium values replaced, e.g. `sigma_t`, `albedo` (RGB or scalar) and/or the phase function's
@@ -93,75 +110,81 @@ class Scene(eqx.Module):
         return eqx.tree_at(lambda s: s.medium, self, type(med)(phase=phase, **kw))
 
 
-class Packed(NamedTuple):
-    """The scene's geometry as stacked arrays, and its BSDFs grouped by type (global shape index: spheres,
-    rectangles, one black rectangle per area light, then one index per mesh).
+class ShapeGroup(NamedTuple):
+    """Shapes intersected together: `shapes`, one Module (of a `stacked` class: its array fields with a leading
+    axis of `size` shapes, `vmap`-ed over; else one shape), with the global shape indices `start .. start + size -
+    1` (static)."""
 
-    `bsdf_types` (the BSDF classes present, in order of appearance), `bsdf_kind` (per shape: the index of its BSDF
-    class in `bsdf_types`, or `EMITTER_KIND`) and `emitter_shape` (per area light, in `scene.area_lights` order: its
-    shape index) are static; `bsdfs[k]` is one Module of type `bsdf_types[k]` whose array fields have a leading
-    shape axis (shapes of other types hold a copy of the first one's values, never used). `meshes`: the scene's
-    `Mesh` Modules (each with its own BVH) and `mesh_shape` (static): each one's shape index. A scene without
-    meshes has `meshes = ()`, and no mesh code is traced.
+    shapes: AbstractShape
+    start: int
+    size: int
+    stacked: bool
+
+
+class Packed(NamedTuple):
+    """The scene's geometry as groups of shapes, and its BSDFs grouped by type.
+
+    Global shape index: the shapes of each `stacked` class (in order of the classes' first appearance; a class's
+    scene shapes first, then the area lights' shapes of that class), then the others one by one (the scene's in
+    order, then the area lights'). `groups`: `ShapeGroup`s in that order, the stacked ones first. `bsdf_types` (the
+    BSDF classes present, in order of appearance), `bsdf_kind` (per shape: the index of its BSDF class in
+    `bsdf_types`, or `EMITTER_KIND` for an area light's shape) and `emitter_shape` (per area light, in
+    `scene.area_lights` order: its shape index) are static; `bsdfs[k]` is one Module of type `bsdf_types[k]`
+    whose array fields have a leading shape axis (shapes of other types hold a copy of the first one's values,
+    never used). A scene without shapes of a class traces none of that class's code.
     """
 
-    sph_center: Float[Array, "Ns 3"]
-    sph_radius: Float[Array, "Ns"]
-    rect_center: Float[Array, "Nr 3"]
-    rect_u: Float[Array, "Nr 3"]
-    rect_v: Float[Array, "Nr 3"]
-    rect_normal: Float[Array, "Nr 3"]
+    groups: tuple
     bsdf_types: tuple
     bsdf_kind: np.ndarray
     bsdfs: tuple
     emitter_shape: tuple
-    meshes: tuple = ()
-    mesh_shape: tuple = ()
-
-    @property
-    def n_spheres(self) -> int:
-        return self.sph_radius.shape[0]
 
     @property
     def n_shapes(self) -> int:
         return len(self.bsdf_kind)
 
 
+def _stack(shapes: list) -> AbstractShape:
+    """One Module of the shapes' class whose array fields are the shapes' stacked along a new leading axis (the
+    BSDFs are left out, as None: `Packed.bsdfs` holds them); built without `__init__`, so without its checks."""
+    geometry = [eqx.tree_at(lambda s: s.bsdf, s, None) for s in shapes]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *geometry)
+
+
 def pack(scene: Scene) -> Packed:
-    """Stack the scene's shapes (and area lights, as black emitting rectangles) into arrays for the integrator."""
-    spheres = [s for s in scene.shapes if isinstance(s, Sphere)]
-    rects = [s for s in scene.shapes if isinstance(s, Rectangle)]
-    meshes = [s for s in scene.shapes if isinstance(s, Mesh)]
-    emitters = list(scene.area_lights)
-    ordered = spheres + rects
+    """The scene's shapes and its area lights' shapes (black, `EMITTER_KIND`) as `ShapeGroup`s for the tracer."""
+    emitters = [lt.shape for lt in scene.area_lights]
+    entries = [(s, False) for s in scene.shapes] + [(s, True) for s in emitters]  # (shape, is an emitter)
+    classes = []
+    for s, _ in entries:
+        if type(s).stacked and type(s) not in classes:
+            classes.append(type(s))
+    ordered = [e for c in classes for e in entries if type(e[0]) is c] + [e for e in entries if not type(e[0]).stacked]
+    groups, start = [], 0
+    for c in classes:
+        members = [s for s, _ in ordered if type(s) is c]
+        groups.append(ShapeGroup(_stack(members), start, len(members), True))
+        start += len(members)
+    for s, _ in ordered[start:]:
+        groups.append(ShapeGroup(s, start, 1, False))
+        start += 1
+    surfaces = [s for s, emitter in ordered if not emitter]
     types = []
-    for s in ordered + meshes:
+    for s in surfaces:
         if type(s.bsdf) not in types:
             types.append(type(s.bsdf))
-    kind = ([types.index(type(s.bsdf)) for s in ordered] + [EMITTER_KIND] * len(emitters)
-            + [types.index(type(s.bsdf)) for s in meshes])
+    kind = [EMITTER_KIND if emitter else types.index(type(s.bsdf)) for s, emitter in ordered]
     bsdfs = []
     for t in types:
-        filler = next(s.bsdf for s in ordered + meshes if type(s.bsdf) is t)
-        per_shape = ([s.bsdf if type(s.bsdf) is t else filler for s in ordered] + [filler] * len(emitters)
-                     + [s.bsdf if type(s.bsdf) is t else filler for s in meshes])
+        filler = next(s.bsdf for s in surfaces if type(s.bsdf) is t)
+        per_shape = [s.bsdf if (not emitter and type(s.bsdf) is t) else filler for s, emitter in ordered]
         bsdfs.append(jax.tree.map(lambda *xs: jnp.stack(xs), *per_shape))
-
-    def stack(xs, shape):
-        return jnp.stack(xs) if xs else jnp.zeros((0,) + shape, jnp.float32)
-
-    flat = rects + emitters
+    position = {id(s): i for i, (s, _) in enumerate(ordered)}
     return Packed(
-        sph_center=stack([s.center for s in spheres], (3,)),
-        sph_radius=stack([s.radius for s in spheres], ()),
-        rect_center=stack([r.center for r in flat], (3,)),
-        rect_u=stack([r.edge_u for r in flat], (3,)),
-        rect_v=stack([r.edge_v for r in flat], (3,)),
-        rect_normal=stack([r.normal for r in flat], (3,)),
+        groups=tuple(groups),
         bsdf_types=tuple(types),
         bsdf_kind=np.asarray(kind, dtype=np.int32),
         bsdfs=tuple(bsdfs),
-        emitter_shape=tuple(len(ordered) + j for j in range(len(emitters))),
-        meshes=tuple(meshes),
-        mesh_shape=tuple(len(ordered) + len(emitters) + j for j in range(len(meshes))),
+        emitter_shape=tuple(position[id(s)] for s in emitters),
     )

@@ -41,6 +41,7 @@ from ._validate import (
     NON_NEGATIVE,
     POSITIVE,
     RR_DEPTH_RANGE,
+    SPOT_CUTOFF_RANGE,
     UNIT,
     Range,
     polygons_in_box,
@@ -322,9 +323,7 @@ LIGHTS = {
             "position": Field(VEC3),
             "direction": Field(VEC3, nonzero=True),
             "intensity": Field(RGB, range=NON_NEGATIVE),
-            # (0, 90] as the file check has always said; SpotLight itself refuses 90 (SPOT_CUTOFF_RANGE, (0, 90)), which
-            # scene_from_dict reports as a SceneError. One range, once tests/test_scene_io.py expects "(0, 90)".
-            "cutoff_angle": Field(NUMBER, default=SPOT_CUTOFF_DEFAULT, range=Range(0, 90, lo_open=True)),
+            "cutoff_angle": Field(NUMBER, default=SPOT_CUTOFF_DEFAULT, range=SPOT_CUTOFF_RANGE),
             "beam_width": Field(
                 NUMBER, default=lambda v: spot_beam_width_default(v["cutoff_angle"]),
                 range=Range(0, "cutoff_angle", lo_open=True)

@@ -363,20 +363,7 @@ def _check_render_args(scene, key, spp, *, sampling, proposal, batch_paths, chun
     if progress is not None and not callable(progress):
         raise TypeError(f"render: progress must be None or a function progress(done_spp, spp), got "
                         f"{_describe(progress)}")
-    if not RR_DEPTH_RANGE.contains(scene.rr_depth):  # a hard range (no --force): rr_depth 1e9 never ends
-        raise ValueError(f"render: scene.rr_depth {scene.rr_depth} is out of range; valid range "
-                         f"{RR_DEPTH_RANGE.text()} (paths run to rr_depth before Russian roulette may end them)")
-    _check_height_scale(scene.medium)
     cam = scene.camera
     check_size(cam.width, cam.height, int(spp), scene.max_depth, rr_depth=scene.rr_depth,
                names=dict(width="scene.camera.width", height="scene.camera.height", max_depth="scene.max_depth"))
 
-
-def _check_height_scale(medium) -> None:
-    """A height fog's `height_scale` in `HEIGHT_SCALE_RANGE`, the range its optical depths are stable in.
-    Belongs in `HeightFog.__check_init__` (`check_range("HeightFog", "height_scale", ..., HEIGHT_SCALE_RANGE)`);
-    checked here, before anything is traced, until it is there."""
-    from ._height import HeightFog
-
-    if isinstance(medium, HeightFog):
-        check_range("HeightFog", "height_scale", medium.height_scale, HEIGHT_SCALE_RANGE)

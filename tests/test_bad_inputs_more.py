@@ -20,7 +20,8 @@ from helpers import SPOT_FOG, spot_fog, spot_fog_dict
 from jaxfog import _render
 from jaxfog._cli import main as cli_main
 from jaxfog._mesh import MeshError, read_mesh
-from jaxfog._validate import G_RANGE, HEIGHT_SCALE_RANGE, MAX_RR_DEPTH, RR_DEPTH_RANGE, Range, check_range
+from jaxfog._validate import (DROPLET_DIAMETER_RANGE, G_RANGE, HEIGHT_SCALE_RANGE, MAX_RR_DEPTH, RR_DEPTH_RANGE,
+                              SPOT_CUTOFF_RANGE, Range, check_range)
 
 TINY = ["--set", "camera.width=4", "--set", "camera.height=4", "--spp", "1", "--no-progress"]
 
@@ -181,6 +182,8 @@ def test_one_range_helper_shared_by_modules_and_files():
     assert _scene_io.MEDIA["homogeneous"].fields["g"].range is G_RANGE
     assert _scene_io.MEDIA["height"].fields["height_scale"].range is HEIGHT_SCALE_RANGE
     assert _scene_io.INTEGRATOR.fields["rr_depth"].range is RR_DEPTH_RANGE
+    assert _scene_io.LIGHTS["spot"].fields["cutoff_angle"].range is SPOT_CUTOFF_RANGE
+    assert _scene_io.PHASES["droplet"].fields["diameter"].range is DROPLET_DIAMETER_RANGE
     assert G_RANGE.text() == "(-1, 1)" and Range(1, None, also=-1).text() == "[1, inf), or -1"
     assert Range(1, None, also=-1).contains(-1) and not Range(1, None, also=-1).contains(0)
     check_range("X", "g", jax.numpy.float32(0.5), G_RANGE)
@@ -191,7 +194,9 @@ def test_one_range_helper_shared_by_modules_and_files():
 
 MODULE_ROWS = [
     ("Sphere(radius=-1)", lambda: jf.Sphere((0, 0, 0), -1.0, jf.Diffuse(0.5)), ValueError,
-     ["Sphere.radius = -1.0 (as float32) is outside the valid range [0, inf)"]),
+     ["Sphere.radius = -1.0 (as float32) is outside the valid range (0, inf)"]),
+    ("Sphere(radius=0)", lambda: jf.Sphere((0, 0, 0), 0.0, jf.Diffuse(0.5)), ValueError,
+     ["Sphere.radius = 0.0 (as float32) is outside the valid range (0, inf)"]),
     ("Sphere(center=nan)", lambda: jf.Sphere((0, float("nan"), 0), 1.0, jf.Diffuse(0.5)), ValueError,
      ["Sphere.center = [0.0, nan, 0.0] must be a finite vector"]),
     ("Camera(fov=500)", lambda: jf.Camera(origin=(0, 0, 1), target=(0, 0, 0), up=(0, 1, 0), fov=500, width=4,
@@ -207,6 +212,35 @@ MODULE_ROWS = [
      ValueError, ["Rectangle.edge_v = [1.0, 1.0, 0.0] is not perpendicular to edge_u"]),
     ("Rectangle(zero edge)", lambda: jf.Rectangle((0, 0, 0), (0, 0, 0), (0, 1, 0), jf.Diffuse(0.5)), ValueError,
      ["Rectangle.edge_u = [0.0, 0.0, 0.0] must be a finite, non-zero vector"]),
+    ("AreaLight(edges not perpendicular)", lambda: jf.AreaLight((0, 2, 0), (1, 0, 0), (1, 0, 1), 1.0), ValueError,
+     ["AreaLight.edge_v = [1.0, 0.0, 1.0] is not perpendicular to edge_u"]),
+    ("SpotLight(cutoff_angle=90)", lambda: jf.SpotLight((0, 2, 0), (0, -1, 0), 1.0, 90.0, 10.0), ValueError,
+     ["SpotLight.cutoff_angle = 90.0 (as float32) is outside the valid range (0, 90)"]),
+    ("HeightFog(height_scale=1e-30)",
+     lambda: jf.HeightFog(sigma_0=0.5, height_scale=1e-30, albedo=0.9, phase=jf.HenyeyGreenstein(0.5)), ValueError,
+     ["HeightFog.height_scale = 1.0000000031710769e-30 (as float32) is outside the valid range [0.001, 1e+06]"]),
+    ("Scene(rr_depth=10**9)", lambda: jf.Scene(camera=spot_fog(width=4, height=4).camera, max_depth=-1,
+                                               rr_depth=10**9), ValueError,
+     [f"Scene.rr_depth = 1000000000 is outside the valid range [1, {MAX_RR_DEPTH}]"]),
+    ("Scene(glass sphere across the fog box's face)",
+     lambda: jf.Scene(camera=spot_fog(width=4, height=4).camera,
+                      shapes=(jf.Sphere((0.6, 0.5, -0.3), 0.5, jf.Glass()),),
+                      medium=jf.HomogeneousMedium(0.5, 0.9, jf.HenyeyGreenstein(0.3),
+                                                  bounds=((-1, 0, -1), (1, 0.7, 1)))), ValueError,
+     ["Scene.shapes[0]: a glass Sphere straddles a face of the medium's bounds (min [-1.0, 0.0, -1.0], max [1.0, "
+      "0.699999988079071, 1.0])", "wholly inside or wholly outside"]),
+    ("Scene(glass rectangle across the fog box's face)",
+     lambda: jf.Scene(camera=spot_fog(width=4, height=4).camera,
+                      shapes=(jf.Rectangle((0, 0, 0), (6, 0, 0), (0, 0, -6), jf.Glass()),),
+                      medium=jf.HomogeneousMedium(0.5, 0.9, jf.HenyeyGreenstein(0.3),
+                                                  bounds=((-1, -1, -1), (1, 2, 1)))), ValueError,
+     ["Scene.shapes[0]: a glass Rectangle straddles a face of the medium's bounds"]),
+    ("Scene(glass mesh across the fog box's face)",
+     lambda: jf.Scene(camera=spot_fog(width=4, height=4).camera,
+                      shapes=(jf.Mesh.from_arrays([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], jf.Glass()),),
+                      medium=jf.HomogeneousMedium(0.5, 0.9, jf.HenyeyGreenstein(0.3),
+                                                  bounds=((-1, 0.5, -1), (1, 2, 1)))), ValueError,
+     ["Scene.shapes[0]: a glass Mesh straddles a face of the medium's bounds"]),
 ]
 
 
@@ -227,19 +261,14 @@ def test_modules_rebuilt_inside_jit_are_not_checked():
     assert float(f(-1.0, 500.0)) == 499.0
 
 
-def test_render_refuses_rr_depth_beyond_its_limit(no_render):
-    """`max_depth = -1` with `rr_depth = 10**9` and no surfaces would never end: refused before tracing."""
-    scene = jf.Scene(camera=spot_fog(width=4, height=4).camera, medium=spot_fog().medium, max_depth=-1,
-                     rr_depth=10**9)
-    _raises(lambda: jf.render(scene, jax.random.key(0), 1), ValueError,
-            f"render: scene.rr_depth 1000000000 is out of range; valid range [1, {MAX_RR_DEPTH}]")
-
-
-def test_render_refuses_height_scale_outside_its_stable_range(no_render):
-    med = jf.HeightFog(sigma_0=0.5, height_scale=1e-30, albedo=0.9, phase=jf.HenyeyGreenstein(0.5))
-    scene = jf.Scene(camera=spot_fog(width=4, height=4).camera, medium=med)
-    _raises(lambda: jf.render(scene, jax.random.key(0), 1), ValueError,
-            "HeightFog.height_scale = 1.0000000031710769e-30 (as float32) is outside the valid range [0.001, 1e+06]")
+def test_glass_wholly_inside_or_outside_the_fog_box_builds():
+    """The Python check of glass against a fog box passes a glass sphere wholly inside (touching a face) or
+    outside the box, and diffuse objects anywhere."""
+    medium = jf.HomogeneousMedium(0.5, 0.9, jf.HenyeyGreenstein(0.3), bounds=((-1, 0, -1), (1, 1, 1)))
+    cam = spot_fog(width=4, height=4).camera
+    for center in ((0.0, 0.5, 0.0), (0.0, 2.0, 0.0)):
+        jf.Scene(camera=cam, shapes=(jf.Sphere(center, 0.5, jf.Glass()),), medium=medium)
+    jf.Scene(camera=cam, shapes=(jf.Sphere((1.0, 1.0, 1.0), 0.5, jf.Diffuse(0.5)),), medium=medium)
 
 
 SCENE_ROWS = [

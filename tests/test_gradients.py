@@ -4,7 +4,8 @@ Parameters `theta = (sigma_t, albedo, g, light intensity, floor reflectance)` (s
 built into a scene by `with_params`. Scenes: `spot_fog` and `backlit` from `data_synthetic/scenes`, at 32 x 32 px and
 `max_depth` 2 in the default run (camera -> medium or surface vertex -> light: the spot's cone, the sphere's shadow
 on the floor and its shadow shaft in the fog are all there), `max_depth` 4 in the slow run. `backlit` gets a sphere
-of radius 0 (never hit) so that both scenes have one structure and share the compiled programs.
+of radius 1e-6 far below the floor (never hit) so that both scenes have one structure and share the compiled
+programs.
 
 What is tested, and the statistics:
 - **AD vs finite differences of the expected image** ("detached", and "proposal" sampling from a reference medium
@@ -72,13 +73,14 @@ FOUR_POINT = (True, False, True, False, False)
 
 # ------------------------------------------------------------------------------------------------------- scenes
 def load(name: str, max_depth: int) -> jf.Scene:
-    """A shipped scene at RES x RES px and the given max_depth; `backlit` gets a never-hit sphere (radius 0) so that
-    it has spot_fog's structure (same compiled programs)."""
+    """A shipped scene at RES x RES px and the given max_depth; `backlit` gets a never-hit sphere (radius 1e-6, 50
+    units below the floor; a `Sphere` needs a radius > 0) so that it has spot_fog's structure (same compiled
+    programs)."""
     scene = jf.load_scene(SCENES_DIR / f"{name}.json",
                           overrides=[f"camera.width={RES}", f"camera.height={RES}",
                                      f"integrator.max_depth={max_depth}"]).scene
     if not any(isinstance(s, jf.Sphere) for s in scene.shapes):
-        dummy = jf.Sphere(center=(0.0, -50.0, 0.0), radius=0.0, bsdf=jf.Diffuse(0.5))
+        dummy = jf.Sphere(center=(0.0, -50.0, 0.0), radius=1e-6, bsdf=jf.Diffuse(0.5))
         scene = eqx.tree_at(lambda s: s.shapes, scene, tuple(scene.shapes) + (dummy,))
     return scene
 

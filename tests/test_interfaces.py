@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -19,8 +20,10 @@ import pytest
 from scipy import stats as sps
 
 import jaxfog as jf
+from helpers import FLOOR_CAMERA, assert_same_render_up_to_rounding, make_floor
 from jaxfog import _sampling as S
 from jaxfog._math import safe_normalize
+from jaxfog._shapes import AbstractShape, ShapeHit, sphere_distance
 
 N = 200_000
 P_MIN = 1e-4
@@ -196,17 +199,17 @@ def test_point_and_spot_light_samples():
 
 
 def test_point_like_lights_split_their_value_into_colour_and_profile():
-    """`sample_scale` (what the tracer reads) is `sample_li` with its value as rgb * scale; `intensity_parts`
-    multiplies back to `intensity_toward`; a point-like light that defines only `intensity_toward` gets the default
-    split (the whole intensity, scale 1)."""
+    """`sample_li` gives a point-like light's value as `rgb * scale` (what the tracer reads: the scalar computed
+    once for the three channels), equal to `intensity_toward(-wi) / dist^2`; `intensity_toward` is
+    `intensity_parts` multiplied back. A light whose colour depends on the direction returns it with scale 1."""
     spot = jf.SpotLight((0.0, 2.0, 0.0), (0.0, -1.0, 0.0), (10.0, 5.0, 2.0), cutoff_angle=30.0, beam_width=10.0)
     point = jf.PointLight((0.5, 2.0, -0.3), (4.0, 3.0, 2.0))
 
     class Ring(jf.AbstractPointLikeLight):  # a colour that depends on the direction: no colour / profile split
         position: jax.Array
 
-        def intensity_toward(self, w):
-            return jnp.stack([1.0 + w[0] ** 2, 2.0 + w[1], 3.0 - w[2]])
+        def intensity_parts(self, w):
+            return jnp.stack([1.0 + w[0] ** 2, 2.0 + w[1], 3.0 - w[2]]), jnp.float32(1.0)
 
         def lit_interval(self, o, d):
             return jnp.float32(-jnp.inf), jnp.float32(jnp.inf)
@@ -217,14 +220,14 @@ def test_point_like_lights_split_their_value_into_colour_and_profile():
             x = jnp.array([2.0 * np.sin(np.deg2rad(theta)), 2.0 - 2.0 * np.cos(np.deg2rad(theta)), 0.3],
                           jnp.float32)
             ls = light.sample_li(x)
-            wi, dist, rgb, scale = light.sample_scale(x)
-            np.testing.assert_allclose(np.asarray(wi), np.asarray(ls.wi), rtol=0, atol=0)
-            assert float(dist) == float(ls.dist)
-            np.testing.assert_allclose(np.asarray(rgb * scale), np.asarray(ls.value), rtol=1e-6, atol=1e-9)
-            colour, profile = light.intensity_parts(-wi)
-            np.testing.assert_allclose(np.asarray(colour * profile), np.asarray(light.intensity_toward(-wi)),
+            np.testing.assert_allclose(np.asarray(ls.rgb * ls.scale), np.asarray(ls.value), rtol=0, atol=0)
+            expected = np.asarray(light.intensity_toward(-ls.wi)) / float(ls.dist) ** 2
+            np.testing.assert_allclose(np.asarray(ls.value), expected, rtol=2e-6, atol=1e-9)
+            colour, profile = light.intensity_parts(-ls.wi)
+            np.testing.assert_allclose(np.asarray(colour * profile), np.asarray(light.intensity_toward(-ls.wi)),
                                        rtol=1e-7)
-    assert float(ring.intensity_parts(jnp.array([0.0, 0.0, 1.0]))[1]) == 1.0
+            assert float(ls.pdf) == 1.0 and float(light.pdf_li(x, ls.wi, ls.dist)) == 0.0
+    assert float(ring.sample_li(jnp.zeros(3)).scale) == pytest.approx(1.0 / float(jnp.sum(ring.position ** 2)))
 
 
 def _rectangle_solid_angle(p, center, eu, ev):
@@ -276,6 +279,273 @@ def test_spot_lit_interval_is_the_cone():
     predicted = (t[None] >= np.asarray(t0)[:, None]) & (t[None] <= np.asarray(t1)[:, None])
     margin = np.abs(cosang - np.cos(np.deg2rad(25.0))) > 1e-4  # float32 rounding at the cone's surface
     assert np.array_equal(inside[margin], predicted[margin])
+
+
+# ----------------------------------------------------------------------------------------------------------- shapes
+def _tetrahedron(bsdf):
+    """A closed tetrahedron with faces of four different areas, counter-clockwise seen from outside: its vertices
+    (float64) and faces."""
+    v = np.array([[0.1, 0.0, -0.2], [1.6, 0.1, -0.2], [0.1, 1.1, 0.0], [0.3, 0.2, 0.6]])
+    f = np.array([[0, 1, 2], [0, 1, 3], [1, 2, 3], [0, 2, 3]])
+    tri = v[f]
+    out = np.einsum("ij,ij->i", np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), tri.mean(1) - v.mean(0))
+    f = np.where((out < 0)[:, None], f[:, ::-1], f)
+    return jf.Mesh.from_arrays(v, f, bsdf), v, f
+
+
+def _shapes():
+    mesh, _, _ = _tetrahedron(jf.Diffuse(0.5))
+    return {
+        "sphere": jf.Sphere((0.3, -0.2, 0.5), 0.8, jf.Diffuse(0.5)),
+        "rectangle": jf.Rectangle((0.1, 0.2, -0.3), (1.2, 0.0, 0.4), (0.0, 0.9, 0.0), jf.Diffuse(0.5)),
+        "mesh": mesh,
+    }
+
+
+def _random_rays(seed, n, shape):
+    """Rays from a box around the shape aimed at points of its bounds widened by a third (hits and misses)."""
+    rng = np.random.default_rng(seed)
+    lo, hi = (np.asarray(b, np.float64) for b in shape.bounds())
+    o = rng.uniform(-3.0, 3.0, (n, 3))
+    target = rng.uniform(lo - (hi - lo) / 6 - 0.05, hi + (hi - lo) / 6 + 0.05, (n, 3))
+    d = target - o
+    return jnp.asarray(o, jnp.float32), jnp.asarray(d / np.linalg.norm(d, axis=1, keepdims=True), jnp.float32)
+
+
+def _per_ray(shape, f):
+    """`f` over rays: `vmap` for a stacked (analytic) shape; `lax.map` for a mesh, whose batched traversal would
+    compile a lane-compacting program far slower to build than these few rays need."""
+    return jax.vmap(f) if shape.stacked else (lambda *xs: jax.lax.map(lambda x: f(*x), xs))
+
+
+def _sphere_t64(o, d, c, r):
+    oc = o - c
+    b = np.einsum("ij,ij->i", oc, d)
+    disc = b * b - (np.einsum("ij,ij->i", oc, oc) - r * r)
+    root = np.sqrt(np.maximum(disc, 0.0))
+    t0, t1 = -b - root, -b + root
+    t = np.where(t0 > 1e-4, t0, np.where(t1 > 1e-4, t1, np.inf))
+    return np.where(disc >= 0, t, np.inf)
+
+
+def _rectangle_t64(o, d, c, u, v):
+    n = np.cross(u, v) / np.linalg.norm(np.cross(u, v))
+    t = ((c - o) @ n) / (d @ n)
+    p = o + t[:, None] * d - c
+    inside = (np.abs(p @ u / (u @ u)) <= 0.5) & (np.abs(p @ v / (v @ v)) <= 0.5) & (t > 1e-4)
+    return np.where(inside, t, np.inf)
+
+
+@pytest.mark.parametrize("name", ["sphere", "rectangle", "mesh"])
+def test_shape_intersect_any_hit_and_normals(name):
+    """`intersect` against float64 distances (sphere, rectangle; the mesh's traversal is tested against brute force
+    in tests/test_mesh.py, and here against its own triangles' planes), its normal against the surface's; `found`
+    and `any_hit` at a finite `t_max` against the distance found without one (rays whose hit lies within 1e-4 of
+    t_max are left out: rounding)."""
+    shape = _shapes()[name]
+    n_rays = 4000 if shape.stacked else 1000
+    o, d = _random_rays(1, n_rays, shape)
+    t_max = jnp.asarray(np.random.default_rng(2).uniform(0.5, 5.0, n_rays), jnp.float32)
+    t, n, _ = (np.asarray(x) for x in _per_ray(shape, shape.intersect)(o, d, jnp.full(n_rays, jnp.inf)))
+    found = np.asarray(_per_ray(shape, shape.intersect)(o, d, t_max).found)
+    blocked = np.asarray(_per_ray(shape, shape.any_hit)(o, d, t_max))
+    o64, d64 = np.asarray(o, np.float64), np.asarray(d, np.float64)
+    hits = np.isfinite(t)
+    assert 0.2 < hits.mean() < 0.9, hits.mean()  # both hits and misses
+    p = o64 + np.where(hits, t, 0.0)[:, None] * d64
+    if name == "sphere":
+        c, r = np.asarray(shape.center, np.float64), float(shape.radius)
+        t64 = _sphere_t64(o64, d64, c, r)
+        normal = (p - c) / r
+    elif name == "rectangle":
+        c, u, v = (np.asarray(x, np.float64) for x in (shape.center, shape.edge_u, shape.edge_v))
+        t64 = _rectangle_t64(o64, d64, c, u, v)
+        normal = np.broadcast_to(np.cross(u, v) / np.linalg.norm(np.cross(u, v)), p.shape)
+    if name != "mesh":
+        both = np.isfinite(t64) & hits
+        assert np.mean(np.isfinite(t64) != hits) < 1e-3  # rays grazing an edge may go either way in float32
+        np.testing.assert_allclose(t[both], t64[both], rtol=2e-5, atol=2e-5)
+        np.testing.assert_allclose(n[both], normal[both], atol=2e-5)
+    else:  # each hit lies on a face, whose outward normal it returns
+        _, v, f = _tetrahedron(jf.Diffuse(0.5))
+        tri = v[f]
+        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+        dist = np.abs(np.einsum("pk,fk->pf", p, fn) - np.einsum("fk,fk->f", tri[:, 0], fn)[None])
+        face = np.argmin(dist, axis=1)
+        assert np.all(dist[hits, face[hits]] < 1e-5)
+        np.testing.assert_allclose(n[hits], fn[face[hits]], atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
+    clear = np.abs(np.where(hits, t, 1e9) - np.asarray(t_max)) > 1e-4
+    assert np.array_equal(found[clear], (t < np.asarray(t_max))[clear])
+    assert np.array_equal(blocked[clear], found[clear])
+
+
+@pytest.mark.parametrize("name", ["sphere", "rectangle", "mesh"])
+def test_shape_area_sampling_is_uniform_with_density_one_over_area(name):
+    """`sample_area`: points on the surface (a ray back along the sampled normal hits the shape there with that
+    normal), inside `bounds()`, with `pdf = pdf_area(p) = 1 / area` (float64 areas), spread uniformly by area
+    (chi-square: the sphere's height, which is uniform for a uniform sphere (Archimedes); the rectangle's 5 x 5
+    cells; the mesh's faces by their areas)."""
+    shape = _shapes()[name]
+    smp = jax.vmap(shape.sample_area)(_uniforms(11, (N, 2)))
+    p, n, pdf = (np.asarray(x, np.float64) for x in smp)
+    lo, hi = (np.asarray(b, np.float64) for b in shape.bounds())
+    assert np.all((p >= lo - 1e-6) & (p <= hi + 1e-6))
+    if name == "sphere":
+        area = 4.0 * np.pi * float(shape.radius) ** 2
+        h = (p[:, 2] - float(shape.center[2])) / float(shape.radius)
+        counts_x, edges = h, np.linspace(-1.0, 1.0, 21)
+        probs = np.full(20, 1.0 / 20)
+    elif name == "rectangle":
+        c, u, v = (np.asarray(x, np.float64) for x in (shape.center, shape.edge_u, shape.edge_v))
+        area = np.linalg.norm(np.cross(u, v))
+        a, b = (p - c) @ u / (u @ u), (p - c) @ v / (v @ v)
+        assert np.all(np.abs((p - c) @ np.cross(u, v)) / area < 1e-5)
+        cell = np.clip(np.floor((a + 0.5) * 5), 0, 4) * 5 + np.clip(np.floor((b + 0.5) * 5), 0, 4)
+        counts_x, edges, probs = cell, np.arange(26) - 0.5, np.full(25, 1.0 / 25)
+    else:
+        _, v, f = _tetrahedron(jf.Diffuse(0.5))
+        tri = v[f]
+        fa = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        area = fa.sum()
+        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) / (2 * fa[:, None])
+        dist = np.abs(np.einsum("pk,fk->pf", p, fn) - np.einsum("fk,fk->f", tri[:, 0], fn)[None])
+        face = np.argmin(dist, axis=1)
+        assert np.all(dist[np.arange(N), face] < 1e-5)
+        np.testing.assert_allclose(n, fn[face], atol=1e-5)
+        counts_x, edges, probs = face, np.arange(5) - 0.5, fa / area
+    np.testing.assert_allclose(pdf, 1.0 / area, rtol=1e-5)
+    np.testing.assert_allclose(float(shape.pdf_area(smp.p[0])), 1.0 / area, rtol=1e-5)
+    pv, stat = chi_square_pvalue(counts_x, edges, probs)
+    assert pv > P_MIN, (stat, pv)
+    back = _per_ray(shape, lambda q, m: shape.intersect(q + 0.5 * m, -m, jnp.float32(jnp.inf)))(smp.p[:500],
+                                                                                                smp.n[:500])
+    np.testing.assert_allclose(np.asarray(back.t), 0.5, atol=2e-5)
+    np.testing.assert_allclose(np.asarray(back.n), n[:500], atol=2e-5)
+
+
+def test_shape_bounds_and_box_relation():
+    """`bounds()` is the shape's box (sphere: center +- radius; rectangle: its corners'; mesh: its vertices', rounded
+    outward in float32); `box_relation` says inside, outside or straddles for each shape, None when traced."""
+    shapes = _shapes()
+    sph, rect, mesh = shapes["sphere"], shapes["rectangle"], shapes["mesh"]
+    np.testing.assert_allclose(np.asarray(sph.bounds()[0]), [-0.5, -1.0, -0.3], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(sph.bounds()[1]), [1.1, 0.6, 1.3], atol=1e-6)
+    c, u, v = (np.asarray(x, np.float64) for x in (rect.center, rect.edge_u, rect.edge_v))
+    corners = np.array([c + 0.5 * (a * u + b * v) for a in (-1, 1) for b in (-1, 1)])
+    np.testing.assert_allclose(np.asarray(rect.bounds()[0]), corners.min(0), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(rect.bounds()[1]), corners.max(0), atol=1e-6)
+    _, verts, _ = _tetrahedron(jf.Diffuse(0.5))
+    mlo, mhi = (np.asarray(b, np.float64) for b in mesh.bounds())
+    assert np.all(mlo <= verts.min(0)) and np.all(mhi >= verts.max(0))
+    np.testing.assert_allclose(mlo, verts.min(0), atol=1e-6)
+    big = (-np.full(3, 5.0), np.full(3, 5.0))
+    far = (np.full(3, 3.0), np.full(3, 4.0))
+    for s in (sph, rect, mesh):
+        assert s.box_relation(*big) == "inside" and s.box_relation(*far) == "outside"
+        lo, hi = (np.asarray(b, np.float64) for b in s.bounds())
+        mid = 0.5 * (lo + hi)
+        assert s.box_relation(lo - 5.0, np.where(np.arange(3) == 0, mid[0], hi + 5.0)) == "straddles"
+    seen = []
+    jax.jit(lambda c: seen.append(jf.Sphere(c, 0.8, jf.Diffuse(0.5)).box_relation(*big)) or c)(jnp.zeros(3))
+    assert seen == [None]  # traced values: nothing to check
+
+
+class Ball(AbstractShape):
+    """A sphere as a shape class the tracer has never seen, intersected on its own (not stacked): the tracer and
+    `pack` reach it only through `AbstractShape`."""
+
+    center: jax.Array
+    radius: jax.Array
+    bsdf: jf.AbstractBSDF
+    stacked: ClassVar[bool] = False
+
+    def _sphere(self):
+        return jf.Sphere(self.center, self.radius, self.bsdf)
+
+    def intersect(self, o, d, t_max):
+        t = sphere_distance(o, d, self.center, self.radius)
+        found = t < t_max
+        p = o + jnp.where(found, t, 0.0) * d
+        return ShapeHit(jnp.where(found, t, jnp.inf), safe_normalize(p - self.center), found)
+
+    def any_hit(self, o, d, t_max):
+        return sphere_distance(o, d, self.center, self.radius) < t_max
+
+    def bounds(self):
+        return self._sphere().bounds()
+
+    def sample_area(self, u):
+        return self._sphere().sample_area(u)
+
+    def pdf_area(self, p):
+        return self._sphere().pdf_area(p)
+
+    def box_relation(self, lo, hi):
+        return self._sphere().box_relation(lo, hi)
+
+
+class Lamp(jf.AbstractPointLikeLight):
+    """An isotropic point light as a light class the tracer has never seen."""
+
+    position: jax.Array
+    intensity: jax.Array
+
+    def intensity_parts(self, w):
+        return self.intensity, jnp.float32(1.0)
+
+    def lit_interval(self, o, d):
+        return jnp.float32(-jnp.inf), jnp.float32(jnp.inf)
+
+
+def test_new_shape_and_light_classes_render_through_the_interfaces():
+    """A scene whose sphere and point light are replaced by classes defined here (`Ball`, not stacked; `Lamp`)
+    renders the same image, up to float32 rounding, as with `Sphere` and `PointLight`: `pack` and the tracer know
+    shapes and lights only by their interfaces (a new shape is one class plus its registration in the scene files).
+    Fog, a spot of shadow on the floor and the ball seen directly: nearest hits, shadow rays, equiangular sampling
+    and next-event estimation all go through them."""
+    cam = FLOOR_CAMERA.build()
+    medium = jf.HomogeneousMedium(0.3, 0.8, jf.HenyeyGreenstein(0.4))
+    pos, power = jnp.array([0.3, 2.0, 0.2], jnp.float32), jnp.array([3.0, 2.0, 1.0], jnp.float32)
+    center, radius = jnp.array([0.2, 0.5, 0.0], jnp.float32), jnp.float32(0.5)
+    known = jf.Scene(camera=cam, shapes=(make_floor(), jf.Sphere(center, radius, jf.Diffuse(0.6))),
+                     lights=(jf.PointLight(pos, power),), medium=medium, max_depth=2)
+    new = jf.Scene(camera=cam, shapes=(make_floor(), Ball(center, radius, jf.Diffuse(0.6))),
+                   lights=(Lamp(pos, power),), medium=medium, max_depth=2)
+    a, b = (np.asarray(jf.render(sc, jax.random.key(3), 2)) for sc in (known, new))
+    assert a.max() > 0
+    assert_same_render_up_to_rounding(a, b, spp=2, label="new shape and light classes")
+
+
+def test_modules_are_abstract_or_final():
+    """No Module of the library overrides a concrete method of a base class (equinox's abstract-or-final rule:
+    concrete classes implement abstract methods only), and every medium says whether it has a box through the
+    interface (`bounds`: None for fog that fills space)."""
+    import inspect
+
+    import equinox as eqx
+    from jaxfog import _bsdf, _camera, _height, _integrator, _lights, _medium, _mesh, _phase, _scene, _shapes
+
+    overridden = []
+    for m in (_bsdf, _camera, _height, _integrator, _lights, _medium, _mesh, _phase, _scene, _shapes):
+        for cls in vars(m).values():
+            if not (inspect.isclass(cls) and issubclass(cls, eqx.Module) and cls.__module__ == m.__name__):
+                continue
+            for attr, val in vars(cls).items():
+                if attr.startswith("__") or not (inspect.isfunction(val) or isinstance(val, property)):
+                    continue
+                base = next((b for b in cls.__mro__[1:] if attr in vars(b)), None)
+                if base is None or base in (eqx.Module, object):
+                    continue
+                bv = vars(base)[attr]
+                if not getattr(bv.fget if isinstance(bv, property) else bv, "__isabstractmethod__", False):
+                    overridden.append(f"{cls.__name__}.{attr} overrides {base.__name__}.{attr}")
+    assert overridden == []
+    hg = jf.HenyeyGreenstein(0.5)
+    assert jf.HeightFog(sigma_0=0.5, height_scale=1.0, albedo=0.9, phase=hg).bounds is None
+    assert jf.HomogeneousMedium(0.5, 0.9, hg).bounds is None
+    assert jf.HomogeneousMedium(0.5, 0.9, hg, bounds=((0, 0, 0), (1, 1, 1))).bounds is not None
 
 
 # ----------------------------------------------------------------------------------------------------- the warps

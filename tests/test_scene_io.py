@@ -167,12 +167,12 @@ def test_fov_out_of_range(tmp_path, fov):
     assert_error(tmp_path, setter("camera.fov", fov), f"camera.fov: {fov} is out of range", "valid range (0, 180)")
 
 
-@pytest.mark.parametrize("cutoff", [0, 95])
+@pytest.mark.parametrize("cutoff", [0, 90, 95])
 def test_cutoff_out_of_range(tmp_path, cutoff):
     def mutate(data):
         data["lights"][0]["cutoff_angle"] = cutoff
         data["lights"][0]["beam_width"] = 0.5 * cutoff if cutoff else 1
-    msg = assert_error(tmp_path, mutate, f"lights[0].cutoff_angle: {cutoff} is out of range", "valid range (0, 90]")
+    msg = assert_error(tmp_path, mutate, f"lights[0].cutoff_angle: {cutoff} is out of range", "valid range (0, 90)")
     assert "beam_width" not in msg
 
 
