@@ -345,13 +345,25 @@ def check_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> FitSt
         + "; per channel " + ", ".join(f"{ch} {c:.2f}" for ch, c in zip("rgb", check.per_channel)))
     attempts = state.attempts + (Attempt(state.y, state.step, u, check),)
     nxt = state.start + 1
-    if check.worst <= cfg.chi2_max or nxt >= len(state.starts):
+    if check.worst <= CHI2_GOOD or nxt >= len(state.starts):
         return state.replace(attempts=attempts, phase="done")
-    log(f"  (not explained from start {state.start + 1}: {check.worst:.1f}x the noise; the next distinct start of "
-        f"the search)")
+    if check.worst <= cfg.chi2_max:
+        log(f"  (explained from start {state.start + 1} at {check.worst:.1f}x the noise, above {CHI2_GOOD:g}: the "
+            f"other distinct starts too, the best kept)")
+    else:
+        log(f"  (not explained from start {state.start + 1}: {check.worst:.1f}x the noise; the next distinct start "
+            f"of the search)")
     return state.replace(attempts=attempts, phase="approach", start=nxt, y=state.starts[nxt], u=None, w=None,
                          passes=(), step=None, approach=0, recentres=0, trial=None, base=None, lam=LAMBDA_START,
                          t_attempt=time.perf_counter())
+
+
+CHI2_GOOD = 2.0
+"""A local solve whose model check reads at most this many times the noise ends the fit; one between this and
+`chi2_max` is kept as an attempt while the search's other distinct starts are solved too, and the attempt with the
+lowest check is the result. Measured: the truth's basin read 0.7-3.8 (Mitsuba's dense fog side view 2.9-3.8), and
+two wrong basins passed the old rule (first attempt within `chi2_max`): a point-lit room's albedo fit at 4.6 (g -0.19
+for 0.5, albedo 0.92 for 0.7) and a study fit at 5.77 (g 0.05 for 0.31)."""
 
 
 ROUNDS = {"search": search_round, "approach": approach_round, "estimate": estimate_round, "check": check_round}
@@ -424,11 +436,9 @@ def _at_edge(names, y) -> list[str]:
             if np.isfinite(SPECS[n].lo) and np.isfinite(SPECS[n].hi) and abs(float(y[i])) > 6.0]
 
 
-def _best_attempt(attempts, chi2_max) -> Attempt | None:
-    if not attempts:
-        return None
-    good = [a for a in attempts if a.check.worst <= chi2_max]
-    return good[0] if good else min(attempts, key=lambda a: a.check.worst)
+def _best_attempt(attempts) -> Attempt | None:
+    """The attempt whose model check reads lowest (None before any)."""
+    return min(attempts, key=lambda a: a.check.worst) if attempts else None
 
 
 def summarise(problem: Problem, state: FitState, cfg: FitConfig) -> FitResult:
@@ -437,7 +447,7 @@ def summarise(problem: Problem, state: FitState, cfg: FitConfig) -> FitResult:
     names = problem.names
     k = len(names)
     wall = time.perf_counter() - state.t0
-    best = _best_attempt(state.attempts, cfg.chi2_max)
+    best = _best_attempt(state.attempts)
     search = None if state.scan is None else _search_summary(names, state.scan)
     if search is not None:
         search["starts"] = [_values(names, y) for y in state.starts[:max(len(state.attempts), 1)]]
