@@ -147,10 +147,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fit at 1/F of the target resolution (box-pooled target; default: the largest F that divides "
                         "the image size and leaves at least 8 px a side: few pixels with many samples each keep "
                         "the Jacobian's noise low, docs/results/fit_sweep)")
-    p.add_argument("--budget", type=float, default=FitConfig.time_budget, metavar="SECONDS",
-                   help="time budget of each local solve: its estimate stops with the passes it has when it is spent "
-                        "(default %(default)s; a solve also stops when its standard errors reach 1%% or stop "
-                        "shrinking)")
+    p.add_argument("--budget", type=float, default=None, metavar="SECONDS",
+                   help=f"time budget of each local solve: its estimate stops with the passes it has when it is spent "
+                        f"(default {FitConfig.time_budget:g}; none in a multi-process fit, whose processes must "
+                        f"decide alike; a solve also stops when its standard errors reach 1%% or stop shrinking)")
     p.add_argument("--candidates", nargs="+", default=[], metavar="SCENE.json",
                    help="after the fit, rank these views (scene files of the same medium: other cameras or lights) by "
                         "how much a target of each would shrink the uncertainty")
@@ -165,6 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "regions the scene file does not describe")
     p.add_argument("--out", required=True, help="RESULT.json (PNG figures are written beside it)")
     p.add_argument("--quiet", action="store_true", help="no per-iteration progress")
+    from jaxfog.tools import add_distributed_arguments
+
+    add_distributed_arguments(p)  # --coordinator HOST:PORT --num-processes N --process-id I (docs/distributed.md)
     return p
 
 
@@ -173,17 +176,64 @@ def main(argv=None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2; argparse has printed the message)
         return e.code if isinstance(e.code, int) else 2
+    from jaxfog.tools import LaunchError, launch_of
+
+    try:  # a multi-process fit's options, checked before any work (None: one process)
+        launch = launch_of(args.coordinator, args.num_processes, args.process_id)
+    except LaunchError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if launch is not None and args.budget is not None and np.isfinite(args.budget):
+        print(f"error: --budget {args.budget:g}: a multi-process fit has no time budget (each process's clock "
+              f"would stop it at another pass, and the processes must make the same decisions); leave --budget "
+              f"out: the fit stops at its precision or batch limits", file=sys.stderr)
+        return 2
+    if args.budget is None:
+        args.budget = FitConfig.time_budget if launch is None else float("inf")
     from jaxfog.tools import use_cpu_cores
 
     use_cpu_cores()  # every core as a JAX device (warns if JAX has already started with another count)
     from jaxfog.tools import use_compilation_cache
 
     use_compilation_cache()  # compiled programs kept on disk: a second run does not compile again ($JAXFOG_CACHE_DIR)
+    if launch is not None:  # every process runs the whole fit; process 0 prints and writes (docs/distributed.md)
+        from jaxfog.tools import run_process
+
+        return run_process(lambda: _fit_as_one_of_many(args, launch), _failure_of_one)
     try:
         return _run(args)
     except (FitError, LimitError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+
+
+def _fit_as_one_of_many(args, launch) -> int:
+    """`main`'s fit as one process of a multi-process fit: each process makes the same decisions from the same images
+    (each render is shared by every process's devices, and each process gets the whole image); the processes other
+    than 0 print nothing and write RESULT.json and its figures into a temporary folder that is then removed."""
+    import contextlib
+    import tempfile
+
+    from jaxfog.tools import initialize_distributed, process_index
+
+    initialize_distributed(launch)  # before anything makes a JAX array (loading a scene does)
+    if process_index() == 0:
+        return _run(args)
+    with tempfile.TemporaryDirectory(prefix="jaxfog-fit-") as tmp, open(os.devnull, "w") as null, \
+            contextlib.redirect_stdout(null), contextlib.redirect_stderr(null):
+        args.out = os.path.join(tmp, os.path.basename(args.out))
+        return _run(args)
+
+
+def _failure_of_one(e: BaseException) -> int:
+    """A multi-process fit's failure in this process, printed with the process's id; the exit code (2 for a bad
+    input, as `main`)."""
+    from jaxfog.tools import LaunchError, process_index, report_unexpected
+
+    if isinstance(e, (FitError, LimitError, LaunchError)):
+        print(f"error: process {process_index()}: {e}", file=sys.stderr)
+        return 2
+    return report_unexpected(e, "python -m fitting.fit")
 
 
 def _run(args) -> int:

@@ -84,6 +84,9 @@ def _configure_render(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true",
                    help="render beyond the size limits (each side <= 16384 px, <= 4096 x 4096 px, spp <= 2^20, "
                         "max_depth <= 1024, <= 1e11 path segments; also lifted by JAXFOG_NO_LIMITS=1)")
+    from ._distributed import add_arguments
+
+    add_arguments(p)  # --coordinator HOST:PORT --num-processes N --process-id I (docs/distributed.md)
 
 
 def _same_file(a: str, b: str) -> bool:
@@ -120,14 +123,46 @@ from ._validate import seed_argument as _seed
 
 
 def _run_render(args: argparse.Namespace) -> int:
+    from . import _distributed
+
+    try:  # the multi-process options, checked before any work (None: one process)
+        launch = _distributed.launch_of(args.coordinator, args.num_processes, args.process_id)
+    except _distributed.LaunchError as e:
+        raise CliError(str(e)) from None
+    if launch is None or launch.process_id in (None, 0):  # the process that writes (0) checks its outputs first
+        _check_output(args.output, ".exr", "-o", [("SCENE.json", args.scene)])
+        if args.png:
+            _check_output(args.png, ".png", "--png", [("SCENE.json", args.scene), ("-o", args.output)])
+    if launch is None:
+        return _render_scene(args)
+
+    def one_of_many() -> int:
+        _distributed.initialize(launch)  # before anything makes a JAX array (the scene file does)
+        return _render_scene(args, writer=_distributed.process_index() == 0)
+
+    return _distributed.run_process(one_of_many, _render_failure)
+
+
+def _render_failure(e: BaseException) -> int:
+    """A multi-process render's failure in this process, printed as `main` prints it (with the process's id); the
+    exit code."""
+    from ._distributed import LaunchError, process_index, report_unexpected
+    from ._validate import LimitError
+
+    if isinstance(e, (LimitError, SceneError, CliError, OSError, LaunchError)):
+        print(f"jaxfog: error: process {process_index()}: {_one_line(e)}", file=sys.stderr)
+        return EXIT_USAGE if isinstance(e, LimitError) else EXIT_ERROR
+    return report_unexpected(e, "jaxfog")
+
+
+def _render_scene(args: argparse.Namespace, writer: bool = True) -> int:
+    """The render itself, after the output checks; on every process of a multi-process run (the same render on all
+    of their devices), where only the `writer` (process 0) writes and prints."""
     from ._image import write_exr, write_png
     from ._scene_io import load_scene
 
     from ._validate import check_size
 
-    _check_output(args.output, ".exr", "-o", [("SCENE.json", args.scene)])
-    if args.png:
-        _check_output(args.png, ".png", "--png", [("SCENE.json", args.scene), ("-o", args.output)])
     sf = load_scene(args.scene, args.overrides)  # validates before anything is compiled
     spp = args.spp if args.spp is not None else sf.spp
     base = os.path.basename(sf.path)
@@ -146,7 +181,8 @@ def _run_render(args: argparse.Namespace) -> int:
 
     cam = sf.scene.camera
     t0 = time.perf_counter()
-    with tqdm(total=spp, unit="spp", desc=sf.name, disable=args.no_progress, file=sys.stderr, leave=False) as bar:
+    with tqdm(total=spp, unit="spp", desc=sf.name, disable=args.no_progress or not writer, file=sys.stderr,
+              leave=False) as bar:
 
         def progress(done: int, total: int) -> None:
             bar.update(done - bar.n)
@@ -174,6 +210,8 @@ def _run_render(args: argparse.Namespace) -> int:
     except FloatingPointError as e:
         kept = "; the existing file is unchanged" if os.path.exists(args.output) else ""
         raise CliError(f"{e}; nothing written{kept} (a parameter at the edge of float32?)") from None
+    if not writer:  # another process of a multi-process run: process 0 writes and prints
+        return 0
     write_exr(args.output, image, metadata)
     written = [args.output]
     if args.png:
@@ -184,6 +222,8 @@ def _run_render(args: argparse.Namespace) -> int:
     print(f"wrote {', '.join(written)}")
     print(f"compile {compile_timer.seconds:.2f} s, wall {wall:.2f} s "
           f"(render {max(wall - compile_timer.seconds, 0.0):.2f} s)")
+    if jax.process_count() > 1:
+        print(f"on {jax.device_count()} devices of {jax.process_count()} processes")
     return 0
 
 

@@ -2,7 +2,10 @@
 
 A batch's work is a list of items, one chunk of pixels of one sample layer each (of several layers side by side, for
 an image smaller than a chunk); the devices share the items (so even a 1-spp image keeps every device busy) and each
-device traces its items one after the other.
+device traces its items one after the other, adding them to its own partial sums; the devices' partial sums are added
+once, at the end of the render. The devices are `jax.devices()` by default: after `jax.distributed.initialize`, those
+of every process, so that one `render` call made by every process renders one image on all of them, and the only
+data the processes exchange is that final sum (docs/distributed.md).
 
 Sample `k` of every pixel draws its random numbers from `fold_in(key, k)` (hashed by `_random.uniforms`), so an image
 depends only on the scene, the key and spp (never on the batch size), and memory is bounded for any spp.
@@ -21,6 +24,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from ._devices import is_device_list, render_devices
 from ._integrator import (
     SamplingOptions,
     barrier,
@@ -170,20 +174,20 @@ def sampling_options(sampling: SamplingOptions | None = None, **fields) -> Sampl
 
 @eqx.filter_jit
 def _render_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: Array, valid: Array,
-                  options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices: int = 1,
+                  options: SamplingOptions, proposal, chunk_paths: int = DEFAULT_CHUNK_PATHS, n_devices=1,
                   moments: bool = False):
     """`_trace_items` over the work items (`valid`: `(n_items, layers_per_chunk)`, which of each item's layers are
-    real), split evenly across the first `n_devices`
-    local devices (static; the number of items must be a multiple of it): one compiled program, each device scans
-    its share of the items, the shares are summed; returns `(H*W, 3)` (with `moments`, a pair: the sums of the
-    radiance and of its square). The items and their random numbers do not
-    depend on `n_devices`; only the float32 summation order does."""
-    n_pix = scene.camera.width * scene.camera.height
+    real), split evenly across the devices `n_devices` (static: a tuple of `jax.Device`, or an integer n for the
+    first n local devices; the number of items must be a multiple of their count): one compiled program, each device
+    scans its share of the items into its own sums. Returns each device's sums, `(n_devices, n_chunks * chunk, 3)`
+    (with `moments`, a pair: the sums of the radiance and of its square), row `i` on device `i`: nothing is
+    communicated between the devices (`_finish` adds the devices' sums once, at the end of a render). The items and
+    their random numbers do not depend on the devices; only the float32 summation order does."""
+    devices = _device_tuple(n_devices)
     trace = _trace_items_unbounded if scene.max_depth == -1 else _trace_items
-    if n_devices == 1:
+    if len(devices) == 1:
         out = trace(scene, key, layer_ids, chunk_ids, valid, options, proposal, chunk_paths, moments)
-        return jax.tree.map(lambda a: a[:n_pix], out)
-    mesh = Mesh(np.asarray(jax.local_devices()[:n_devices]), ("d",))
+        return jax.tree.map(lambda a: a[None], out)
     arrays, static = eqx.partition((scene, key, proposal), eqx.is_array)
 
     def share(arrays, layers, chunks, ok):
@@ -191,9 +195,8 @@ def _render_items(scene: Scene, key: PRNGKeyArray, layer_ids: Array, chunk_ids: 
         return jax.tree.map(lambda a: a[None], trace(sc, k, layers, chunks, ok, options, prop, chunk_paths, moments))
 
     d = PartitionSpec("d")
-    parts = jax.shard_map(share, mesh=mesh, in_specs=(PartitionSpec(), d, d, d), out_specs=d,
-                          check_vma=False)(arrays, layer_ids, chunk_ids, valid)
-    return jax.tree.map(lambda a: a.sum(axis=0)[:n_pix], parts)
+    return jax.shard_map(share, mesh=_mesh(devices), in_specs=(PartitionSpec(), d, d, d), out_specs=d,
+                         check_vma=False)(arrays, layer_ids, chunk_ids, valid)
 
 
 def render(
@@ -227,8 +230,12 @@ def render(
     - `batch_paths`: paths per compiled call (memory bound); `progress(done_spp, spp)` is called after each batch.
     - `chunk_paths`: paths traced together in one vectorized pass (default 1024, see `DEFAULT_CHUNK_PATHS`); an
       image of fewer pixels traces `chunk_paths // (H*W)` sample layers side by side in one pass.
-    - `devices`: how many local devices share each batch's work (default: all of them; a CPU is one device
-      unless `jaxfog.use_cpu_cores()` ran before JAX started, which the command-line entry points do).
+    - `devices`: the devices that share each batch's work: None (default) for `jax.devices()`, an integer n for
+      the first n local devices, or a list of `jax.Device` (`jaxfog._devices.render_devices`). A CPU is one device
+      unless `jaxfog.use_cpu_cores()` ran before JAX started, which the command-line entry points do. After
+      `jax.distributed.initialize`, `jax.devices()` holds every process's devices: every process then makes the
+      same call (same scene, key, spp and options) and each gets the whole image (docs/distributed.md); the
+      processes exchange only the devices' final sums.
 
     - `variance`: also return each pixel's variance of the image's estimate, `(image, variance)`: the samples'
       variance about their mean, divided by spp (unbiased; spp >= 2), in radiance squared. Its square root is the
@@ -239,12 +246,14 @@ def render(
     options = sampling_options(sampling, estimator=estimator, equiangular=equiangular, light_lobe=light_lobe,
                                distance_mix=distance_mix)
     _check_render_args(scene, key, spp, sampling=options, proposal=proposal, batch_paths=batch_paths,
-                       chunk_paths=chunk_paths, devices=devices, progress=progress)
+                       chunk_paths=chunk_paths, devices=None if is_device_list(devices) else devices,
+                       progress=progress)
     if not isinstance(variance, bool):
         raise TypeError(f"render: variance must be True or False, got {variance!r}")
     if variance and spp < 2:
         raise ValueError(f"render: variance=True needs spp >= 2 (a variance from one sample is undefined), got {spp}")
-    n_dev = jax.local_device_count() if devices is None else int(devices)
+    devs = render_devices(devices)
+    n_dev = len(devs)
     per = layers_per_batch(scene, spp, batch_paths)
     group = layers_per_chunk(scene, spp, batch_paths, chunk_paths)
     _, n_ch = n_chunks(scene, chunk_paths)
@@ -253,17 +262,18 @@ def render(
     H, W = scene.camera.height, scene.camera.width
     chunks = jnp.asarray(item % n_ch, jnp.uint32)
     total = None
-    scene, proposal = _replicated((scene, proposal), n_dev)  # (a key is new each call, as a rule: left to jit)
+    scene, proposal = _replicated((scene, proposal), devs)
+    key = _replicated(key, devs, keep=False)  # (a key is new each call, as a rule: placed, not kept)
     for start in range(0, spp, per):
         first = start + (item // n_ch) * group  # each item's first layer; padding items start past the batch
         valid = (first[:, None] + np.arange(group)[None, :]) < min(start + per, spp)
         out = _render_items(scene, key, jnp.asarray(first, jnp.uint32), chunks, jnp.asarray(valid), options,
-                            proposal, chunk_paths, n_dev, variance)
+                            proposal, chunk_paths, devs, variance)
         out = out if variance else (out,)
         total = out if total is None else _add(total, out)
         if progress is not None:
             progress(min(spp, start + per), spp)
-    return _finish(total, spp, (H, W, 3))
+    return _finish(total, spp, (H, W, 3), devs)
 
 
 PLACED_MAX_ELEMENTS = 1 << 16
@@ -272,22 +282,36 @@ PLACED_MAX_ELEMENTS = 1 << 16
 _PLACED: dict = {}  # id(array) -> (weak reference to the array, its copy on every device)
 
 
+def _device_tuple(devices) -> tuple:
+    """`devices` as a tuple of `jax.Device`: itself, or for an integer n the first n local devices."""
+    return tuple(jax.local_devices()[:devices]) if isinstance(devices, int) else tuple(devices)
+
+
 @lru_cache(maxsize=None)
-def _replicated_sharding(n_dev: int) -> NamedSharding:
-    return NamedSharding(Mesh(np.asarray(jax.local_devices()[:n_dev]), ("d",)), PartitionSpec())
+def _mesh(devices: tuple) -> Mesh:
+    """The one-axis mesh `("d",)` of `devices` (a tuple of `jax.Device`, in order)."""
+    return Mesh(np.asarray(devices, dtype=object), ("d",))
 
 
-def _replicated(tree, n_dev: int):
-    """`tree` with each concrete array leaf on all of the first `n_dev` devices (the layout `_render_items` reads
-    the scene in), each array copied there once and the copy reused while the array lives: a scene rendered again
-    and again (the fit; a small image per call) is then not copied to every device on every call, which was most
-    of the fixed cost of a call (`docs/results/bench/PROFILE.md`). Arrays of more than `PLACED_MAX_ELEMENTS`
-    elements are copied each call (no copy is kept); traced values (under `jax.jit`, `jax.jacfwd`), and every array
-    when `render` itself is traced by a caller's `jax.jit`, are left as they are. Speed only: the values are the
-    same."""
-    if n_dev == 1:
+@lru_cache(maxsize=None)
+def _replicated_sharding(devices) -> NamedSharding:
+    """A copy on each of `devices` (a tuple of `jax.Device`, or an integer n for the first n local devices)."""
+    return NamedSharding(_mesh(_device_tuple(devices)), PartitionSpec())
+
+
+def _replicated(tree, devices, keep: bool = True):
+    """`tree` with each concrete array leaf on all of `devices` (a tuple of `jax.Device`, or an integer n for the
+    first n local devices: the layout `_render_items` reads the scene in), each array copied there once and the copy
+    reused while the array lives (`keep`): a scene rendered again and again (the fit; a small image per call) is then
+    not copied to every device on every call, which was most of the fixed cost of a call
+    (`docs/results/bench/PROFILE.md`). Arrays of more than `PLACED_MAX_ELEMENTS` elements are copied each call (no
+    copy is kept); traced values (under `jax.jit`, `jax.jacfwd`), and every array when `render` itself is traced by a
+    caller's `jax.jit`, are left as they are. Speed only: the values are the same. After `jax.distributed.initialize`
+    `devices` may hold other processes' devices: every process places its own copy of the same value."""
+    devices = _device_tuple(devices)
+    if len(devices) == 1:
         return tree
-    sharding = _replicated_sharding(n_dev)
+    sharding = _replicated_sharding(devices)
 
     def place(x):
         if not isinstance(x, jax.Array) or isinstance(x, jax.core.Tracer):
@@ -297,10 +321,10 @@ def _replicated(tree, n_dev: int):
         hit = _PLACED.get(id(x))
         if hit is not None and hit[0]() is x and hit[1].sharding == sharding:  # (another device count: placed anew)
             return hit[1]
-        y = jax.device_put(x, sharding)
+        y = jax.device_put(x, sharding) if sharding.is_fully_addressable else _copies(x, sharding)
         if isinstance(y, jax.core.Tracer):  # inside a caller's `jax.jit`: the program places it; nothing is kept
             return x
-        if x.size <= PLACED_MAX_ELEMENTS:
+        if keep and x.size <= PLACED_MAX_ELEMENTS:
             i = id(x)  # the entry goes when the array does, before its id can be reused
             _PLACED[i] = (weakref.ref(x, lambda _, i=i: _PLACED.pop(i, None)), y)
         return y
@@ -308,18 +332,35 @@ def _replicated(tree, n_dev: int):
     return jax.tree.map(place, tree)
 
 
+def _copies(x: jax.Array, sharding: NamedSharding) -> jax.Array:
+    """`x` as one array with a copy on each device of `sharding` (replicated), some of them other processes': this
+    process places its copies on its own devices (every process holds the same value: the same program on the same
+    inputs). `jax.device_put` to such a sharding checks that the processes agree (one collective per array) and
+    refuses key arrays."""
+    here = [d for d in sharding.mesh.devices.flat if d.process_index == jax.process_index()]
+    return jax.make_array_from_single_device_arrays(x.shape, sharding, [jax.device_put(x, d) for d in here])
+
+
 @jax.jit
 def _add(a, b):
-    """The running sums of the batches (one dispatch, where eager adds cost one each, and more under `jax.jacfwd`)."""
+    """The running sums of the batches, each device's on that device (one dispatch, where eager adds cost one each,
+    and more under `jax.jacfwd`; no communication)."""
     return jax.tree.map(jnp.add, a, b)
 
 
-@partial(jax.jit, static_argnames="shape")
-def _finish(total, spp, shape):
-    """The image (and with the sums of squares, its per-pixel variance) from the sums over `spp` samples, in one
-    compiled call: the mean, and `max(E[x^2] - mean^2, 0) / (spp - 1)`."""
-    mean = (total[0] / spp).reshape(shape)
-    if len(total) == 1:
+@partial(jax.jit, static_argnames=("shape", "devices"))
+def _finish(total, spp, shape, devices=None):
+    """The image (and with the sums of squares, its per-pixel variance) from the devices' sums over `spp` samples
+    (`(n_devices, rows, 3)` each, `rows >= H*W`), in one compiled call: the devices' sums added (the render's one
+    exchange between devices: an all-reduce of `rows x 3` floats, two arrays with the variance), the mean, and
+    `max(E[x^2] - mean^2, 0) / (spp - 1)`. With several `devices` the results are a copy on each of them (so every
+    process of a multi-process render holds the whole image)."""
+    n_pix = shape[0] * shape[1]
+    sums = [t.sum(axis=0)[:n_pix] for t in total]
+    if devices is not None and len(devices) > 1:
+        sums = jax.lax.with_sharding_constraint(sums, _replicated_sharding(devices))
+    mean = (sums[0] / spp).reshape(shape)
+    if len(sums) == 1:
         return mean
-    second = (total[1] / spp).reshape(shape)
+    second = (sums[1] / spp).reshape(shape)
     return mean, jnp.maximum(second - mean * mean, 0.0) / (spp - 1)

@@ -4,6 +4,9 @@ library's own entry points use, so that no script reaches into a private module.
 Running
 - `use_cpu_cores()`: every CPU core a JAX device (call before JAX starts).
 - `use_compilation_cache(path=None)`, `cache_dir()`: JAX's persistent compilation cache (`$JAXFOG_CACHE_DIR`).
+- One run on several processes (docs/distributed.md): `add_distributed_arguments(parser)` (`--coordinator`,
+  `--num-processes`, `--process-id`), `launch_of(...)` (checked, `LaunchError`), `initialize_distributed(launch)`,
+  `process_index()`, `run_process(body, report)` and `report_unexpected(e, prog)` (a failed process ends at once).
 
 Checking inputs and writing outputs
 - `check_size(width, height, spp, max_depth, ...)`, `LimitError`, `limits_lifted()`: the size limits of a render.
@@ -27,6 +30,15 @@ from __future__ import annotations
 
 from ._cache import cache_dir as cache_dir, use_compilation_cache as use_compilation_cache
 from ._devices import use_cpu_cores as use_cpu_cores
+from ._distributed import (
+    LaunchError as LaunchError,
+    add_arguments as add_distributed_arguments,
+    initialize as initialize_distributed,
+    launch_of as launch_of,
+    process_index as process_index,
+    report_unexpected as report_unexpected,
+    run_process as run_process,
+)
 from ._image import _atomic_write as atomic_write
 from ._integrator import n_dims as n_dims, n_iterations as n_iterations
 from ._measure import CompileTimer as CompileTimer, max_rss_mib as max_rss_mib
@@ -50,8 +62,9 @@ from ._validate import (
     seed_argument as seed_argument,
 )
 
-__all__ = ["CompileTimer", "DEFAULT_BATCH_PATHS", "DEFAULT_CHUNK_PATHS", "LimitError", "TABPHASE_SIZE",
-           "atomic_write", "cache_dir", "check_size", "import_mitsuba", "items_per_call", "layers_per_batch",
-           "layers_per_chunk", "limits_lifted", "max_rss_mib", "n_dims", "n_iterations", "read_only", "render_items",
-           "scene_from_dict", "seed_argument", "tabphase_error", "uniforms", "use_compilation_cache",
-           "use_cpu_cores"]
+__all__ = ["CompileTimer", "DEFAULT_BATCH_PATHS", "DEFAULT_CHUNK_PATHS", "LaunchError", "LimitError", "TABPHASE_SIZE",
+           "add_distributed_arguments", "atomic_write", "cache_dir", "check_size", "import_mitsuba",
+           "initialize_distributed", "items_per_call", "launch_of", "layers_per_batch", "layers_per_chunk",
+           "limits_lifted", "max_rss_mib", "n_dims", "n_iterations", "process_index", "read_only", "render_items",
+           "report_unexpected", "run_process", "scene_from_dict", "seed_argument", "tabphase_error", "uniforms",
+           "use_compilation_cache", "use_cpu_cores"]
