@@ -437,8 +437,19 @@ def _at_edge(names, y) -> list[str]:
 
 
 def _best_attempt(attempts) -> Attempt | None:
-    """The attempt whose model check reads lowest (None before any)."""
-    return min(attempts, key=lambda a: a.check.worst) if attempts else None
+    """The attempt whose model check reads lowest (None before any); among the attempts in its basin (estimates
+    within 3 combined standard errors of its own, in the unconstrained coordinates) the one with the smallest
+    largest standard error: two solves of one basin are one solution, and the better-measured one is kept."""
+    if not attempts:
+        return None
+    best = min(attempts, key=lambda a: a.check.worst)
+    y = best.y0 + best.step.delta
+
+    def same_basin(a: Attempt) -> bool:
+        d = a.y0 + a.step.delta - y
+        return bool(np.all(np.abs(d) <= 3.0 * np.sqrt(np.abs(np.diag(a.step.cov) + np.diag(best.step.cov)))))
+
+    return min((a for a in attempts if same_basin(a)), key=lambda a: float(np.max(np.diag(a.step.cov))))
 
 
 def summarise(problem: Problem, state: FitState, cfg: FitConfig) -> FitResult:
