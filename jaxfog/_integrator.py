@@ -5,12 +5,13 @@ A bounce is a list of stages, each a module-level function of named structs:
     intersect -> free_flight -> direct_on_segment -> next_direction -> medium_vertex / surface_vertex
               -> direct_at_vertex -> update
 
-The stages talk to the scene only through the interfaces of its parts: the shapes (`AbstractShape.intersect` /
-`any_hit`, over the groups of `_scene.pack`), the medium (`AbstractMedium`: free flight, weights, transmittance,
-scattering, phase function, `fog_interval`, `bounds`), the lights (every light's `AbstractLight.sample_li` /
-`pdf_li`; the point-like lights' `lit_interval` and `position` for equiangular sampling and the light-angle lobe;
-area lights' `emitted`), the BSDFs (`sample` / `eval` / `pdf`) and the warps of `_sampling`. What a scene lacks
-(fog, a kind of BSDF or shape, area or point lights) is decided in Python and never compiled.
+The stages talk to the scene only through the interfaces of its parts: the shapes (`AbstractShape.intersect`,
+`surface`, `any_hit`, over the groups of `_scene.pack`), the medium (`AbstractMedium`: free flight, weights,
+transmittance, scattering, phase function, `fog_interval`, `bounds`), the lights (every light's
+`AbstractLight.sample_li` / `pdf_li`; the point-like lights' `lit_interval` and `position` for equiangular sampling
+and the light-angle lobe; area lights' `emitted`), the BSDFs (`sample` / `eval` / `pdf`) and the warps of
+`_sampling`. What a scene lacks (fog, a kind of BSDF or shape, area or point lights) is decided in Python and never
+compiled.
 
 Estimators (`docs/estimators.md`) change only the *sampler*, the medium whose values decide where paths go
 (`sampling_medium`): a detached copy of the medium, a caller's fixed proposal, or the medium itself (reparameterized:
@@ -44,6 +45,7 @@ from ._sampling import (
     to_direction,
 )
 from ._scene import EMITTER_KIND, Packed, Scene
+from ._shapes import ShapeHit
 
 EPS_OFFSET = 1e-4
 """Offset (scene units) of rays leaving a surface, along the normal on the side they leave to."""
@@ -307,30 +309,28 @@ NO_NORMAL = (0.0, 0.0, 1.0)
 """The normal a ray that meets nothing gets (never used: the path ends)."""
 
 
-def _stacked_hits(pk: Packed, o, d):
-    """The stacked groups' hit distances `(N,)` and normals `(N, 3)`, in global shape order (`vmap` of each
-    class's `intersect` over its stack); None if the scene has none."""
-    hits = [jax.vmap(lambda s: s.intersect(o, d, jnp.float32(jnp.inf)))(g.shapes) for g in pk.groups if g.stacked]
-    if not hits:
-        return None
-    return jnp.concatenate([h.t for h in hits]), jnp.concatenate([h.n for h in hits])
-
-
 def intersect(pk: Packed, o, d) -> Hit:
-    """Nearest hit of the ray `(o, d)` over every shape (`AbstractShape.intersect`): the stacked groups' nearest
-    by `argmin`, then each other shape's hit where it is nearer (it may stop its search at the distance found so
-    far). The normal is the shape's front normal (a smooth mesh's: its shading normal)."""
-    stacked = _stacked_hits(pk, o, d)
-    if stacked is not None:
-        t_all, n_all = stacked
+    """Nearest hit of the ray `(o, d)` over every shape, in two steps (`AbstractShape.intersect`, then `surface` of
+    the hit): the stacked groups' nearest hit by `argmin` (`vmap` of each class's `intersect` over its stack) and
+    their surface there (every stacked shape's `surface` at that distance, the hit one's kept: one vector operation
+    per group), then each other shape's hit and surface where it is nearer (it may stop its search at the distance
+    found so far). The normal is the shape's front normal (a smooth mesh's: its shading normal)."""
+    groups = [g for g in pk.groups if g.stacked]
+    if groups:
+        hits = [jax.vmap(lambda s: s.intersect(o, d, jnp.float32(jnp.inf)))(g.shapes) for g in groups]
+        t_all = jnp.concatenate([h.t for h in hits])
         idx = jnp.argmin(t_all)
-        t, n = t_all[idx], n_all[idx]
+        t = t_all[idx]
+        hit = ShapeHit(t, jnp.isfinite(t), jnp.concatenate([h.prim for h in hits])[idx])
+        surfaces = [jax.vmap(lambda s: s.surface(o, d, hit))(g.shapes) for g in groups]
+        n = jnp.concatenate([sp.n for sp in surfaces])[idx]  # (a stacked shape's surface keeps hit.t)
     else:
         t, idx, n = jnp.float32(jnp.inf), jnp.int32(0), jnp.array(NO_NORMAL, jnp.float32)
     for g in pk.groups:
         if not g.stacked:
             h = g.shapes.intersect(o, d, jax.lax.stop_gradient(t))
-            t, idx, n = jnp.where(h.found, h.t, t), jnp.where(h.found, g.start, idx), jnp.where(h.found, h.n, n)
+            sp = g.shapes.surface(o, d, h)
+            t, idx, n = jnp.where(h.found, sp.t, t), jnp.where(h.found, g.start, idx), jnp.where(h.found, sp.n, n)
     found = jnp.isfinite(t)
     p = o + jnp.where(found, t, 0.0) * d
     return Hit(t, idx, n, found, p)

@@ -43,7 +43,7 @@ from jaxtyping import Array, Float, Int
 from ._bsdf import AbstractBSDF
 from ._math import cross, dot, safe_div, safe_norm, safe_normalize
 from ._sampling import uniform_triangle
-from ._shapes import AbstractShape, AreaSample, ShapeHit
+from ._shapes import AbstractShape, AreaSample, ShapeHit, SurfacePoint
 from ._validate import concrete_values, polygons_in_box
 
 __all__ = ["Mesh", "MeshError", "MeshData", "read_mesh", "write_ply", "build_bvh", "transform_matrix"]
@@ -622,8 +622,9 @@ def _array_arg(x, name: str, path: str, kind) -> np.ndarray:
 class Mesh(AbstractShape):
     """A triangle mesh with its BVH and its `bsdf` (any BSDF; one-sided BSDFs work on the front faces, which are
     counter-clockwise seen from the front). An `AbstractShape` that is intersected on its own (not `stacked`):
-    nearest and any hit by BVH traversal (`mesh_nearest`, `mesh_occluded`), the hit's distance and normal from the
-    hit triangle (`mesh_hit`); area sampling picks a triangle by its area.
+    nearest and any hit by BVH traversal (`mesh_nearest`, `mesh_occluded`; the hit's `prim` is its triangle's
+    slot), the surface's distance and normal from the hit triangle (`mesh_hit`); area sampling picks a triangle by
+    its area.
 
     Build it with `Mesh.from_arrays(vertices, faces, bsdf, normals=None, smooth=False)` or `Mesh.from_file(path,
     bsdf, to_world=None, smooth=False)`. The geometry is fixed once built (its arrays are the BVH's leaf order and
@@ -657,10 +658,12 @@ class Mesh(AbstractShape):
 
     # ------------------------------------------------------------------------------------------ AbstractShape
     def intersect(self, o, d, t_max) -> ShapeHit:
-        _, slot = mesh_nearest(self, o, d, t_max)
+        t, slot = mesh_nearest(self, o, d, t_max)
         found = slot >= 0
-        t, n = mesh_hit(self, o, d, jnp.maximum(slot, 0))
-        return ShapeHit(jnp.where(found, t, jnp.inf), n, found)
+        return ShapeHit(jnp.where(found, t, jnp.inf), found, jnp.maximum(slot, 0))
+
+    def surface(self, o, d, hit) -> SurfacePoint:
+        return SurfacePoint(*mesh_hit(self, o, d, hit.prim))
 
     def any_hit(self, o, d, t_max):
         return mesh_occluded(self, o, d, t_max)

@@ -1,7 +1,9 @@
 """Shapes behind one interface (`AbstractShape`): nearest hit, any hit, bounding box, area sampling.
 
-- `intersect(o, d, t_max) -> ShapeHit(t, n, found)`: the nearest hit of the ray `o + t d` (unit `d`) at a distance
-  above `T_MIN`, with the geometric front normal there;
+- `intersect(o, d, t_max) -> ShapeHit(t, found, prim)`: the nearest hit of the ray `o + t d` (unit `d`) at a
+  distance above `T_MIN`, and `surface(o, d, hit) -> SurfacePoint(t, n)`: the (differentiable) distance and the
+  front normal there. Two steps, as Mitsuba's preliminary intersection and surface interaction: the tracer finds
+  the nearest of all shapes' hits first and asks for the surface of the one it keeps;
 - `any_hit(o, d, t_max)`: whether anything of the shape lies on the ray at a distance in (`T_MIN`, `t_max`): the
   shadow test;
 - `bounds()`: the axis-aligned box `(lo, hi)` that contains the shape;
@@ -27,7 +29,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from equinox import AbstractClassVar, AbstractVar
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from ._bsdf import AbstractBSDF
 from ._math import INV_PI, cross, dot_unrolled, safe_div, safe_norm, safe_normalize, safe_sqrt
@@ -47,13 +49,22 @@ def _scalar(x) -> Float[Array, ""]:
 
 
 class ShapeHit(NamedTuple):
-    """The nearest hit of a ray with one shape: `t` (scene units, > `T_MIN`; inf where the ray misses the shape, and
-    possibly inf beyond `t_max`), `n` (the unit front normal there: a smooth mesh's shading normal on the geometric
-    front side; some finite unit vector on a miss) and `found` (a hit closer than `t_max`)."""
+    """The nearest hit of a ray with one shape, before its surface quantities: `t` (scene units, > `T_MIN`; inf where
+    the ray misses the shape, and possibly inf beyond `t_max`), `found` (a hit closer than `t_max`) and `prim`
+    (int32: which part of the shape was hit, for `surface`: a mesh's triangle slot; 0 for a sphere or rectangle)."""
+
+    t: Float[Array, ""]
+    found: Bool[Array, ""]
+    prim: Int[Array, ""]
+
+
+class SurfacePoint(NamedTuple):
+    """Where a ray meets a shape: the distance `t` (scene units; a mesh's recomputed from its triangle's plane, so
+    that it differentiates like an analytic shape's) and the unit front normal `n` (a smooth mesh's shading normal
+    on the geometric front side)."""
 
     t: Float[Array, ""]
     n: Float[Array, "3"]
-    found: Bool[Array, ""]
 
 
 class AreaSample(NamedTuple):
@@ -75,13 +86,19 @@ class AbstractShape(eqx.Module):
     bsdf: AbstractVar[AbstractBSDF]
     stacked: AbstractClassVar[bool]
     """True: the scene's shapes of this class are stacked into one Module whose array fields have a leading axis,
-    and the tracer `vmap`s `intersect` / `any_hit` over it (small analytic shapes: one vector operation for all);
+    and the tracer `vmap`s `intersect`, `surface` and `any_hit` over it (small analytic shapes: one vector operation
+    for all), keeping the distance of `intersect` (the `surface` of a stacked class returns `hit.t` unchanged);
     False: each is intersected on its own (a mesh, whose BVH's size differs from mesh to mesh)."""
 
     @abc.abstractmethod
     def intersect(self, o: Float[Array, "3"], d: Float[Array, "3"], t_max: Float[Array, ""]) -> ShapeHit:
         """The nearest hit at a distance above `T_MIN` (`found`: closer than `t_max`, which a shape may use to stop
-        early), with the front normal there."""
+        early)."""
+
+    @abc.abstractmethod
+    def surface(self, o: Float[Array, "3"], d: Float[Array, "3"], hit: ShapeHit) -> SurfacePoint:
+        """The distance and front normal where the ray meets the shape at `hit` (one of this shape's hits; finite
+        values, never used, where the ray misses: `t = inf`)."""
 
     @abc.abstractmethod
     def any_hit(self, o: Float[Array, "3"], d: Float[Array, "3"], t_max: Float[Array, ""]) -> Bool[Array, ""]:
@@ -149,8 +166,11 @@ class Sphere(AbstractShape):
 
     def intersect(self, o, d, t_max) -> ShapeHit:
         t = sphere_distance(o, d, self.center, self.radius)
-        p = o + jnp.where(jnp.isfinite(t), t, 0.0) * d  # double where: no inf * 0 on a miss
-        return ShapeHit(t, safe_normalize(p - self.center), t < t_max)
+        return ShapeHit(t, t < t_max, jnp.int32(0))
+
+    def surface(self, o, d, hit) -> SurfacePoint:
+        p = o + jnp.where(jnp.isfinite(hit.t), hit.t, 0.0) * d  # double where: no inf * 0 on a miss
+        return SurfacePoint(hit.t, safe_normalize(p - self.center))
 
     def any_hit(self, o, d, t_max):
         return sphere_distance(o, d, self.center, self.radius) < t_max
@@ -231,9 +251,11 @@ class Rectangle(AbstractShape):
         return safe_norm(cross(self.edge_u, self.edge_v))
 
     def intersect(self, o, d, t_max) -> ShapeHit:
-        n = self.normal
-        t = rectangle_distance(o, d, self.center, self.edge_u, self.edge_v, n)
-        return ShapeHit(t, n, t < t_max)
+        t = rectangle_distance(o, d, self.center, self.edge_u, self.edge_v, self.normal)
+        return ShapeHit(t, t < t_max, jnp.int32(0))
+
+    def surface(self, o, d, hit) -> SurfacePoint:
+        return SurfacePoint(hit.t, self.normal)
 
     def any_hit(self, o, d, t_max):
         return rectangle_distance(o, d, self.center, self.edge_u, self.edge_v, self.normal) < t_max

@@ -23,7 +23,7 @@ import jaxfog as jf
 from helpers import FLOOR_CAMERA, assert_same_render_up_to_rounding, make_floor
 from jaxfog import _sampling as S
 from jaxfog._math import safe_normalize
-from jaxfog._shapes import AbstractShape, ShapeHit, sphere_distance
+from jaxfog._shapes import AbstractShape, ShapeHit, SurfacePoint, sphere_distance
 
 N = 200_000
 P_MIN = 1e-4
@@ -338,19 +338,26 @@ def _rectangle_t64(o, d, c, u, v):
 
 @pytest.mark.parametrize("name", ["sphere", "rectangle", "mesh"])
 def test_shape_intersect_any_hit_and_normals(name):
-    """`intersect` against float64 distances (sphere, rectangle; the mesh's traversal is tested against brute force
-    in tests/test_mesh.py, and here against its own triangles' planes), its normal against the surface's; `found`
+    """`intersect` and `surface` against float64 distances (sphere, rectangle; the mesh's traversal is tested against
+    brute force in tests/test_mesh.py, and here against its own triangles' planes), the normal against the surface's
+    (the surface's distance is the hit's to float32 rounding); `found`
     and `any_hit` at a finite `t_max` against the distance found without one (rays whose hit lies within 1e-4 of
     t_max are left out: rounding)."""
     shape = _shapes()[name]
     n_rays = 4000 if shape.stacked else 1000
     o, d = _random_rays(1, n_rays, shape)
     t_max = jnp.asarray(np.random.default_rng(2).uniform(0.5, 5.0, n_rays), jnp.float32)
-    t, n, _ = (np.asarray(x) for x in _per_ray(shape, shape.intersect)(o, d, jnp.full(n_rays, jnp.inf)))
+    def nearest(o_, d_, t_max_):
+        hit = shape.intersect(o_, d_, t_max_)
+        surface = shape.surface(o_, d_, hit)
+        return hit.t, surface.t, surface.n, hit.found
+
+    t_hit, t, n, _ = (np.asarray(x) for x in _per_ray(shape, nearest)(o, d, jnp.full(n_rays, jnp.inf)))
     found = np.asarray(_per_ray(shape, shape.intersect)(o, d, t_max).found)
+    hits = np.isfinite(t_hit)
+    np.testing.assert_allclose(t[hits], t_hit[hits], rtol=1e-5)  # the surface's distance is the hit's
     blocked = np.asarray(_per_ray(shape, shape.any_hit)(o, d, t_max))
     o64, d64 = np.asarray(o, np.float64), np.asarray(d, np.float64)
-    hits = np.isfinite(t)
     assert 0.2 < hits.mean() < 0.9, hits.mean()  # both hits and misses
     p = o64 + np.where(hits, t, 0.0)[:, None] * d64
     if name == "sphere":
@@ -375,9 +382,9 @@ def test_shape_intersect_any_hit_and_normals(name):
         face = np.argmin(dist, axis=1)
         assert np.all(dist[hits, face[hits]] < 1e-5)
         np.testing.assert_allclose(n[hits], fn[face[hits]], atol=1e-5)
-    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
-    clear = np.abs(np.where(hits, t, 1e9) - np.asarray(t_max)) > 1e-4
-    assert np.array_equal(found[clear], (t < np.asarray(t_max))[clear])
+    np.testing.assert_allclose(np.linalg.norm(n[hits], axis=1), 1.0, atol=1e-6)
+    clear = np.abs(np.where(hits, t_hit, 1e9) - np.asarray(t_max)) > 1e-4
+    assert np.array_equal(found[clear], (t_hit < np.asarray(t_max))[clear])
     assert np.array_equal(blocked[clear], found[clear])
 
 
@@ -419,8 +426,10 @@ def test_shape_area_sampling_is_uniform_with_density_one_over_area(name):
     np.testing.assert_allclose(float(shape.pdf_area(smp.p[0])), 1.0 / area, rtol=1e-5)
     pv, stat = chi_square_pvalue(counts_x, edges, probs)
     assert pv > P_MIN, (stat, pv)
-    back = _per_ray(shape, lambda q, m: shape.intersect(q + 0.5 * m, -m, jnp.float32(jnp.inf)))(smp.p[:500],
-                                                                                                smp.n[:500])
+    def surface_back(q, m):  # from 0.5 outside the point, toward it
+        return shape.surface(q + 0.5 * m, -m, shape.intersect(q + 0.5 * m, -m, jnp.float32(jnp.inf)))
+
+    back = _per_ray(shape, surface_back)(smp.p[:500], smp.n[:500])
     np.testing.assert_allclose(np.asarray(back.t), 0.5, atol=2e-5)
     np.testing.assert_allclose(np.asarray(back.n), n[:500], atol=2e-5)
 
@@ -467,8 +476,11 @@ class Ball(AbstractShape):
     def intersect(self, o, d, t_max):
         t = sphere_distance(o, d, self.center, self.radius)
         found = t < t_max
-        p = o + jnp.where(found, t, 0.0) * d
-        return ShapeHit(jnp.where(found, t, jnp.inf), safe_normalize(p - self.center), found)
+        return ShapeHit(jnp.where(found, t, jnp.inf), found, jnp.int32(0))
+
+    def surface(self, o, d, hit):
+        p = o + jnp.where(hit.found, hit.t, 0.0) * d
+        return SurfacePoint(hit.t, safe_normalize(p - self.center))
 
     def any_hit(self, o, d, t_max):
         return sphere_distance(o, d, self.center, self.radius) < t_max
