@@ -156,7 +156,9 @@ def compile_counter():
 def test_new_physical_values_do_not_recompile(compile_counter):
     """Medium sigma_t / albedo / g (via `replace_medium` and via new Modules), light intensity, BSDF reflectance,
     geometry, camera placement and the key are traced values: rendering with new ones compiles nothing. (Positive
-    control: a new jitted function is counted.)"""
+    control: a new jitted function is counted.) A new Module keeps the base's chromatic extinction: whether a
+    medium is grey is structure (a grey one, known when it is built, compiles no spectral MIS), and
+    `replace_medium` keeps it whatever the new values."""
     base = fog_scene()
     variants = [
         base.replace_medium(sigma_t=0.9),
@@ -164,7 +166,7 @@ def test_new_physical_values_do_not_recompile(compile_counter):
         base.replace_medium(sigma_t=(0.0, 0.0, 0.0)),
         base.replace_medium(g=np.float32(0.5), sigma_t=np.float64(0.7)),  # numpy scalars, other dtypes
         base.replace_medium(g=jax.numpy.asarray(0.1)),
-        fog_scene(sigma_t=2.0, albedo=0.1, g=0.95, intensity=(1.0, 2.0, 3.0)),
+        fog_scene(sigma_t=(2.0, 1.5, 1.0), albedo=0.1, g=0.95, intensity=(1.0, 2.0, 3.0)),
         eqx.tree_at(lambda s: s.shapes[0].bsdf.reflectance, base, jax.numpy.array([0.1, 0.2, 0.3])),
         eqx.tree_at(lambda s: (s.lights[0].position, s.camera.origin), base,
                     (jax.numpy.array([0.0, 0.7, 0.1]), jax.numpy.array([0.2, 1.7, 2.5]))),
