@@ -462,7 +462,8 @@ def transform_matrix(to_world) -> np.ndarray:
 
 def apply_transform(mesh: MeshData, m: np.ndarray) -> MeshData:
     """World-space vertices (and normals, by the inverse transpose); a mirroring transform (det < 0) flips the
-    winding so that front faces stay front faces (as Mitsuba does)."""
+    winding so that front faces stay front faces. (Mitsuba 3 keeps the winding, so there a mirrored mesh faces the
+    other way: `to_mitsuba` of a mirrored mesh is not the same scene, and the XML import refuses one.)"""
     m = np.asarray(m, np.float64)
     v = mesh.vertices @ m[:3, :3].T + m[:3, 3]
     n = None
