@@ -215,6 +215,8 @@ def test_single_scattering_in_a_box_matches_quadrature(stats, cam):
     stats.assert_statistically_equal(mean, se, np.repeat(ref[..., None], 3, -1), label=f"single scattering {cam}")
 
 
+# slow tier: a bounded and an unbounded tracer compiled and compared (18 s on 2 cores with a cold cache)
+@pytest.mark.slow
 def test_a_box_around_everything_changes_nothing_but_rounding():
     """A box that holds every path of the scene renders the unbounded fog's image: with `extent` 2 every segment
     stays within 8 units of the camera (4 segments), inside a box of +-50, so the fog's part of each segment is all

@@ -266,7 +266,10 @@ def _fd_at_zero(call: int) -> np.ndarray:
     return np.concatenate(out)
 
 
-@pytest.mark.parametrize("estimator", ["detached", pytest.param("reparam", marks=pytest.mark.slow), "proposal"])
+# "proposal" is opt-in: it compiles the proposal estimator's forward and reverse programs (50 s on 2 cores with a cold
+# cache); "detached" covers the property in the default run
+@pytest.mark.parametrize("estimator", ["detached", pytest.param("reparam", marks=pytest.mark.slow),
+                                       pytest.param("proposal", marks=pytest.mark.slow)])
 def test_sigma_t_derivative_at_zero(estimator):
     """AD derivative of the mean camera-ray radiance w.r.t. sigma_t at sigma_t = 0 vs one-sided finite differences
     of the plain forward render (its expected image), with the same keys: the test is on the per-key differences
@@ -320,6 +323,52 @@ def test_hg_pdf_backward_peak_for_negative_g(g):
                 - 1.5 * (1 - g * g) * (2 * g - 2 * cos) / (4 * np.pi * (1 + g * g - 2 * g * cos) ** 2.5))
         if omc <= 2.0:
             assert float(grads[1]) == pytest.approx(dref, rel=1e-3, abs=1e-6 * abs(dref) + 1e-9)
+
+
+# ------------------------------------------------------------ the fix behind the NaN tangent at sigma_t = 200, g -> 1
+@pytest.mark.xfail(strict=True, reason="jaxfog._math.safe_mul is not in the library yet: the patch (_math.safe_mul, "
+                                       "used for the shadow-ray transmittance in _integrator.direct_on_segment and "
+                                       "nee) is with the library's owner; remove this mark when it lands")
+def test_safe_mul_value_and_gradient_at_zero():
+    """`safe_mul(x, y)` is `x * y`, and exactly 0 with a zero derivative where `y == 0`, whatever x's derivative.
+
+    The edge it exists for (grid row sigma_t = 200, albedo 1, g = 1 - 1.2e-7, "proposal" with a reference of g = 0,
+    the special ray through the spot's apex with all uniforms 0): two forward scatterings at t = 0 leave a throughput
+    of 1.6e16 whose tangent d/dg is 1.8e23 (the HG score ~1/(1 - g) per vertex); the next light sample's
+    `beta * f` has the value 3.7e31 but the tangent 1.8e23 x 2.2e15 + 1.6e16 x 3.8e22 = inf (float32 max 3.4e38),
+    and it is multiplied by the shadow ray's transmittance exp(-200 x 2.3), which underflows to exactly 0 (tangent
+    0): the contribution is 0, its tangent inf * 0 = NaN. `safe_mul` zeroes x before the product where y == 0
+    (double `where`), so neither mode sees the inf."""
+    from jaxfog._math import safe_mul
+
+    f32 = jnp.float32
+    # values: the plain float32 product where y != 0, exactly 0 where y == 0 (also for an overflowed x)
+    for x, y in ((2.0, 3.0), (-1.5, 1e-30), (3e38, 0.5), (0.0, 4.0)):
+        assert float(safe_mul(f32(x), f32(y))) == float(f32(x) * f32(y))
+    for x in (0.0, 1.0, -2.0, 3e38, np.inf):
+        assert float(safe_mul(f32(x), f32(0.0))) == 0.0
+    # gradients (reverse and forward mode): (y, x) away from the edge, (0, 0) at y == 0, finite for x = inf
+    ga, gb = jax.grad(safe_mul, argnums=(0, 1))(f32(2.0), f32(3.0))
+    assert (float(ga), float(gb)) == (3.0, 2.0)
+    for x in (1.0, 3e38, np.inf):
+        ga, gb = jax.grad(safe_mul, argnums=(0, 1))(f32(x), f32(0.0))
+        assert (float(ga), float(gb)) == (0.0, 0.0), (x, ga, gb)
+        _, tangent = jax.jvp(safe_mul, (f32(x), f32(0.0)), (f32(1.0), f32(1.0)))
+        assert float(tangent) == 0.0, (x, tangent)
+
+    # the integrator's case: a factor whose tangent overflows times a transmittance that underflows to 0
+    def contribution(g, product):
+        beta = 1.6499398e16 * (1.0 + 1.0779e7 * (g - 0.9999999))  # tangent 1.78e23, as measured
+        f = 2.2399064e15 * (1.0 + 1.6777e7 * (g - 0.9999999))  # tangent 3.76e22
+        transmittance = jnp.exp(-f32(200.0) * f32(2.3))  # exactly 0 in float32, tangent 0
+        return product(beta * f, transmittance)
+
+    g0 = f32(0.9999999)
+    plain = jax.jvp(lambda g: contribution(g, lambda a, b: a * b), (g0,), (f32(1.0),))
+    assert float(plain[0]) == 0.0 and np.isnan(float(plain[1]))  # the NaN this helper removes
+    value, tangent = jax.jvp(lambda g: contribution(g, safe_mul), (g0,), (f32(1.0),))
+    assert float(value) == 0.0 and float(tangent) == 0.0
+    assert float(jax.grad(lambda g: contribution(g, safe_mul))(g0)) == 0.0
 
 
 def test_a_path_whose_throughput_overflows_ends(monkeypatch):
