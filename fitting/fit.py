@@ -145,8 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seed of the fit's keys, in [0, 4294967295] (targets use other seeds)")
     p.add_argument("--downscale", type=int, default=None,
                    help="fit at 1/F of the target resolution (box-pooled target; default: the largest F that divides "
-                        "the image size and leaves at least 8 px a side: few pixels with many samples each keep "
-                        "the Jacobian's noise low, docs/results/fit_sweep)")
+                        "the image size and leaves at least 8 px a side, 16 when an exposure is fitted: few pixels "
+                        "with many samples each keep the Jacobian's noise low, docs/results/fit_sweep)")
     p.add_argument("--budget", type=float, default=None, metavar="SECONDS",
                    help=f"time budget of each local solve: its estimate stops with the passes it has when it is spent "
                         f"(default {FitConfig.time_budget:g}; none in a multi-process fit, whose processes must "
@@ -442,7 +442,10 @@ def load_pair(scene_path: str, target_path: str, args) -> tuple:
         target, meta = photo.image, {}
     cam = sf.scene.camera
     if args.downscale is None:
-        args.downscale = auto_downscale(cam.width, cam.height)
+        # with the camera's exposure fitted too, at least 16 px a side: at 8 x 8 sigma_t, g and the exposure are
+        # nearly degenerate (the worked photograph stopped 15% off there; the study's photo family fits at 16 x 16)
+        camera = any(n.startswith("exposure") for n in (args.fit or []))
+        args.downscale = auto_downscale(cam.width, cam.height, 16 if camera else 8)
     f = max(args.downscale, 1)
     check_size(cam.width // f, cam.height // f, args.spp * FitConfig.estimate_factor // 2, sf.scene.max_depth,
                names={"width": f"{os.path.basename(scene_path)}: camera.width / --downscale",
