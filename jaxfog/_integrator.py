@@ -32,7 +32,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ._bsdf import AbstractLobeBSDF
-from ._math import RGB, dot, one_minus_cos_between, safe_div, safe_normalize, where_rgb
+from ._math import RGB, dot, one_minus_cos_between, safe_div, safe_mul, safe_normalize, where_rgb
 from ._medium import AbstractMedium
 from ._sampling import (
     Polar,
@@ -304,6 +304,12 @@ def rgb_safe_div(x, b) -> RGB:
     return RGB(*(safe_div(c, b) for c in RGB.of(x)))
 
 
+def rgb_safe_mul(x, y) -> RGB:
+    """`safe_mul(x, y)` per channel: `x * y`, exactly 0 with a zero derivative in the channels where `y` (a
+    transmittance, RGB or a scalar) is 0."""
+    return RGB(*(safe_mul(a, b) for a, b in zip(RGB.of(x), RGB.of(y))))
+
+
 # -------------------------------------------------------------------------------------------------- geometry
 NO_NORMAL = (0.0, 0.0, 1.0)
 """The normal a ray that meets nothing gets (never used: the path ends)."""
@@ -447,7 +453,10 @@ def direct_on_segment(tr: Tracer, state: PathState, seg: Segment, ok, U) -> RGB:
         ph, inv_p, k, wi, dist, use = computed_once(
             tr, (med.phase.eval(d, wi), safe_div(1.0, p_all), k, wi, dist, use))
         f = RGB.of(med.scattering(xe)) * med.transmittance(o, d, te) * ph
-        c = state.beta * f * (rgb * k) * med.transmittance(xe, wi, dist) * inv_p
+        # a shadow ray's transmittance that underflows to 0 (dense fog) zeroes the contribution and its derivative:
+        # the derivative of the factors before it can overflow float32 where their value does not (the score of a
+        # peaked phase function, ~1/(1 - g) a vertex), and inf * 0 is NaN
+        c = rgb_safe_mul(state.beta * f * (rgb * k), med.transmittance(xe, wi, dist)) * inv_p
         L = L + where_rgb(use, c, 0.0)
     return L
 
@@ -479,7 +488,7 @@ def nee(tr: Tracer, U, p, shadow_o, response: Callable, dir_pdf: Callable, beta:
         # what every channel reads (the shadow ray, the response, the light's profile, the MIS weight), computed once
         resp, scale, weight, wi, dist, use = computed_once(tr, (response(wi), scale, weight, wi, dist, use))
         tr_l = tr.medium.transmittance(p, wi, dist) if tr.medium is not None else 1.0
-        c = beta * resp * (rgb * scale) * tr_l * weight
+        c = rgb_safe_mul(beta * resp * (rgb * scale), tr_l) * weight  # as in direct_on_segment: no inf * 0
         L = L + where_rgb(use, c, 0.0)
     return L
 

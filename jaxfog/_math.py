@@ -63,6 +63,15 @@ def safe_div(a: Float[Array, "..."], b: Float[Array, "..."]) -> Float[Array, "..
     return jnp.where(nz, a / jnp.where(nz, b, 1.0), 0.0)
 
 
+def safe_mul(x: Float[Array, "..."], y: Float[Array, "..."]) -> Float[Array, "..."]:
+    """`x * y`, and exactly 0 with a zero derivative (in both arguments, forward and reverse) where `y == 0`,
+    whatever `x` and its derivative are there (an overflowed inf included: no `inf * 0`). For a factor `y` that is
+    0 only where it has underflowed (a transmittance `exp(-tau)`), whose own derivative is then 0 as well, so the
+    product's true derivative is 0 too. Where `y != 0` it is the plain product (the same float32 value)."""
+    nz = y != 0
+    return jnp.where(nz, jnp.where(nz, x, 0.0) * y, 0.0)
+
+
 def safe_log(x: Float[Array, "..."]) -> Float[Array, "..."]:
     """`log(x)` for x > 0, `-inf` for x <= 0, with a zero (finite) gradient there."""
     pos = x > 0

@@ -326,9 +326,6 @@ def test_hg_pdf_backward_peak_for_negative_g(g):
 
 
 # ------------------------------------------------------------ the fix behind the NaN tangent at sigma_t = 200, g -> 1
-@pytest.mark.xfail(strict=True, reason="jaxfog._math.safe_mul is not in the library yet: the patch (_math.safe_mul, "
-                                       "used for the shadow-ray transmittance in _integrator.direct_on_segment and "
-                                       "nee) is with the library's owner; remove this mark when it lands")
 def test_safe_mul_value_and_gradient_at_zero():
     """`safe_mul(x, y)` is `x * y`, and exactly 0 with a zero derivative where `y == 0`, whatever x's derivative.
 
