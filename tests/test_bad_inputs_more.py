@@ -17,29 +17,12 @@ import pytest
 
 import jaxfog as jf
 from helpers import SPOT_FOG, spot_fog, spot_fog_dict
-from jaxfog import _render
 from jaxfog._cli import main as cli_main
 from jaxfog._mesh import MeshError, read_mesh
 from jaxfog._validate import (DROPLET_DIAMETER_RANGE, G_RANGE, HEIGHT_SCALE_RANGE, MAX_RR_DEPTH, RR_DEPTH_RANGE,
                               SPOT_CUTOFF_RANGE, Range, check_range)
 
-TINY = ["--set", "camera.width=4", "--set", "camera.height=4", "--spp", "1", "--no-progress"]
-
-
-@pytest.fixture
-def no_render(monkeypatch):
-    """`jaxfog._render.render` fails the test if called (the CLI imports it from there when it runs)."""
-
-    def fail(*args, **kwargs):
-        pytest.fail("rendered although the input should have been refused before any work")
-
-    monkeypatch.setattr(_render, "render", fail)
-
-
-def _one_line_error(capsys) -> str:
-    err = capsys.readouterr().err.strip()
-    assert "Traceback" not in err
-    return err.splitlines()[-1]
+from test_bad_inputs import TINY, _one_line_error, no_render  # noqa: F401  (the shared refusal helpers and fixture)
 
 
 def _raises(call, exc, *parts):

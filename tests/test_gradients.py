@@ -260,7 +260,7 @@ def test_derivatives_match_finite_differences_multiple_scattering(name, estimato
     5% step, 16 AD keys) max_r |FD_r|/SE_r 7.9 and R_p 11.4, short of the precondition (the mean image's 1.9 was
     what it looked at); now 12.7 and 20.2 for "detached", 11.5 and 18.1 for "proposal" (the mean image 3.5). 100-140 s
     a test on 2 cores (the finite differences, 14 renders a key, ~75% of it, are shared by both estimators of a
-    scene within one session)."""
+    scene within one pytest run)."""
     run = SLOW_RUN
     fd = fd_samples(name, run["max_depth"], run["spp"], run["n_fd"], run["steps"])
     ad = ad_samples(name, run["max_depth"], run["spp"], run["n_ad"], estimator)

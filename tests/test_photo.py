@@ -119,12 +119,6 @@ def test_raw_files_need_rawpy_or_are_decoded(tmp_path):
         read_photo(str(fake))
 
 
-@pytest.mark.skip(reason="no camera RAW file can be made here: rawpy (LibRaw) only reads, and no DNG is shipped; "
-                         "the RAW path is LibRaw's postprocess with linear gamma, tested by LibRaw itself")
-def test_a_dng_decodes_to_linear_sensor_values():
-    """A tiny DNG of known linear values decodes to them (white balance 1, sRGB primaries)."""
-
-
 def test_field_of_view_warning_names_both_numbers():
     """The 35 mm-equivalent focal length gives the horizontal field of view 2 atan(36 / 2f): a scene at 40 deg
     against a 28 mm lens (65.5 deg) is warned about with both numbers; 65 deg passes (within 5%)."""
