@@ -17,6 +17,7 @@ import pytest
 
 import jaxfog as jf
 from helpers import SPOT_FOG, spot_fog, spot_fog_dict
+from jaxfog import _render
 from jaxfog._cli import main as cli_main
 from jaxfog._mesh import MeshError, read_mesh
 from jaxfog._validate import (DROPLET_DIAMETER_RANGE, G_RANGE, HEIGHT_SCALE_RANGE, MAX_RR_DEPTH, RR_DEPTH_RANGE,
