@@ -369,6 +369,31 @@ def _height(med: dict, ex: Export) -> Fog:
     return Fog(medium, cube, fills_space=True)
 
 
+@MEDIA.register("grid")
+def _grid_medium(med: dict, ex: Export) -> Fog:
+    """`heterogeneous` with `sigma_t` a `gridvolume` of the file's density grid (`_volfile.load_grid`: a `.vol` or
+    `.npy`, 1 or 3 channels passed through: in an RGB variant a 3-channel `gridvolume` is an RGB extinction),
+    `filter_type` trilinear, `wrap_mode` clamp, its `to_world` mapping the unit cube onto `bounds` (else the `.vol`
+    file's own box: Mitsuba ignores a file's box unless `use_grid_bbox` is set), and the medium's `scale`; the fog
+    fills that box as bounded homogeneous fog does (a `cube` with a `null` BSDF). A grid that is zero everywhere (or
+    `scale` 0) is an empty homogeneous medium in the box."""
+    from ._volfile import load_grid
+
+    box = med.get("bounds")
+    grid, (lo, hi) = load_grid(med["file"], None if box is None else (box["min"], box["max"]))
+    cube = _cube((lo + hi) / 2, np.diag((hi - lo) / 2))
+    bounds = {"min": lo.tolist(), "max": hi.tolist()}
+    scale = float(med["scale"])
+    if scale * float(grid.max()) == 0:
+        return _homogeneous({**med, "sigma_t": 0.0, "bounds": bounds}, ex)
+    unit_to_cube = np.array([[2.0, 0, 0, -1], [0, 2, 0, -1], [0, 0, 2, -1], [0, 0, 0, 1]])  # gridvolume's [0, 1]^3
+    sigma_t = {"type": "gridvolume", "grid": ex.volume(grid), "to_world": ex.to_world(cube @ unit_to_cube),
+               "filter_type": "trilinear", "wrap_mode": "clamp"}
+    medium = {"type": "heterogeneous", "sigma_t": sigma_t, "scale": scale, "albedo": _albedo(med["albedo"]),
+              "phase": _phase(med)}
+    return Fog(medium, cube, fills_space=False)
+
+
 # --------------------------------------------------------------------------------------- shapes and BSDFs
 @SHAPES.register("rectangle")
 def _rectangle(s: dict, ex: Export) -> dict:
