@@ -20,6 +20,9 @@ Measuring
 - `render_items`, `items_per_call`, `layers_per_batch`, `layers_per_chunk`, `DEFAULT_BATCH_PATHS`,
   `DEFAULT_CHUNK_PATHS`: the render loop's work items and batch sizes (for profiling the loop's parts).
 - `n_dims(scene)`, `n_iterations(scene)`, `uniforms(key, n, k)`: the random-number layout of a path.
+- `mesh_nearest(mesh, o, d, t_max, compaction=True)`, `mesh_occluded(mesh, o, d, dist)`,
+  `brute_force_nearest(mesh, o, d, t_max)`: a `Mesh`'s ray queries by its BVH (with or without the lane compaction
+  of a batch of rays) and by testing every triangle (for measuring the BVH).
 
 Mitsuba 3 (the optional extra `compare`)
 - `import_mitsuba(variant=None)`, `TABPHASE_SIZE`, `tabphase_error(diameter)`: the Mitsuba module with a variant set,
@@ -42,6 +45,7 @@ from ._distributed import (
 from ._image import _atomic_write as atomic_write
 from ._integrator import n_dims as n_dims, n_iterations as n_iterations
 from ._measure import CompileTimer as CompileTimer, max_rss_mib as max_rss_mib
+from ._mesh import brute_force_nearest as brute_force_nearest, mesh_occluded as mesh_occluded
 from ._mitsuba import TABPHASE_SIZE as TABPHASE_SIZE, import_mitsuba as import_mitsuba
 from ._mitsuba import tabphase_error as tabphase_error
 from ._random import uniforms as uniforms
@@ -63,8 +67,27 @@ from ._validate import (
 )
 
 __all__ = ["CompileTimer", "DEFAULT_BATCH_PATHS", "DEFAULT_CHUNK_PATHS", "LaunchError", "LimitError", "TABPHASE_SIZE",
-           "add_distributed_arguments", "atomic_write", "cache_dir", "check_size", "import_mitsuba",
-           "initialize_distributed", "items_per_call", "launch_of", "layers_per_batch", "layers_per_chunk",
-           "limits_lifted", "max_rss_mib", "n_dims", "n_iterations", "process_index", "read_only", "render_items",
-           "report_unexpected", "run_process", "scene_from_dict", "seed_argument", "tabphase_error", "uniforms",
-           "use_compilation_cache", "use_cpu_cores"]
+           "add_distributed_arguments", "atomic_write", "brute_force_nearest", "cache_dir", "check_size",
+           "import_mitsuba", "initialize_distributed", "items_per_call", "launch_of", "layers_per_batch",
+           "layers_per_chunk", "limits_lifted", "max_rss_mib", "mesh_nearest", "mesh_occluded", "n_dims",
+           "n_iterations", "process_index", "read_only", "render_items", "report_unexpected", "run_process",
+           "scene_from_dict", "seed_argument", "tabphase_error", "uniforms", "use_compilation_cache", "use_cpu_cores"]
+
+
+def mesh_nearest(mesh, o, d, t_max=float("inf"), compaction: bool = True):
+    """The nearest hit of the ray from `o` along unit `d` (scene units) with a `Mesh`, closer than `t_max`, by its
+    BVH: `(t, slot)`, the distance and the hit triangle's slot in the BVH's leaves (inf and -1 on a miss); not
+    differentiated. Under `jax.vmap` over rays the walk runs with lane compaction, as the renderer's does;
+    `compaction=False` gives the same per-ray walk vectorized lane by lane (the same results; for measuring what
+    compaction gains)."""
+    from ._mesh import _walk_one, mesh_nearest as nearest
+
+    if compaction:
+        return nearest(mesh, o, d, t_max)
+    import jax
+    import jax.numpy as jnp
+
+    o, d, t_max = jax.lax.stop_gradient((jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32),
+                                         jnp.asarray(t_max, jnp.float32)))
+    return _walk_one(jax.lax.stop_gradient(mesh.rows), o, d, t_max, root=mesh.root, S=mesh.stack_size, box=mesh.box,
+                     n_leaves=mesh.n_leaves, any_hit=False)
