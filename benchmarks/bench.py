@@ -18,8 +18,8 @@ Three studies, each printed as a table, written to `DIR/bench.json` and plotted 
    (and 32) against a deep reference (64), with common random numbers: every depth is `jaxfog.render` of the same
    scene with the same keys, and `render` traces the same paths at every depth. Sample `k` of a pixel draws its
    numbers from the table `uniforms(k_path, ..., n_iterations * n_dims)` of `fold_in(key, k)`, bounce `i`
-   dimension `j` from column `i * n_dims + j`; `n_dims` (`jaxfog._integrator.layout`) depends only on the lights,
-   the same at every depth, and each column is hashed on its own (`jaxfog._random.uniforms`: a function of the key,
+   dimension `j` from column `i * n_dims + j`; `n_dims` (`jaxfog.tools.n_dims`) depends only on the lights,
+   the same at every depth, and each column is hashed on its own (`jaxfog.tools.uniforms`: a function of the key,
    the row and the column, not of the column count), so columns below `n_iterations * n_dims` are the same whatever
    `max_depth` is, as are the pixel jitter and the batching (an image does not depend on the batch size). So a
    depth-`d` path is exactly the start of the deep one (its first `n_iterations` bounces), and the difference of two
@@ -43,7 +43,7 @@ Three studies, each printed as a table, written to `DIR/bench.json` and plotted 
    says it was skipped.
 
 Peak memory: `memory_analysis()` of the compiled batch (XLA's argument + output + temporary buffers of one call of
-`paths_per_call` paths), and the process's peak resident set size (`VmHWM`, `jaxfog._measure.max_rss_mib`) after each
+`paths_per_call` paths), and the process's peak resident set size (`VmHWM`, `jaxfog.tools.max_rss_mib`) after each
 study; Mitsuba's peak RSS is its subprocess's own.
 
 Timings are wall-clock on whatever else the machine is running (the load average is recorded); ratios inside one
@@ -57,8 +57,6 @@ import dataclasses
 import hashlib
 import json
 import math
-import os
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -67,17 +65,23 @@ from typing import Callable
 
 import numpy as np
 
+from benchmarks.bench_mitsuba import run_mitsuba
 from benchmarks.common import (
-    REPO,
+    OUT,
     block_means,
+    format_table,
     load,
     machine_info,
+    mean_and_se,
     memory_dict,
     save_npz,
     scene_path,
-    subprocess_env,
+    stderr_log,
+    time_calls,
+    with_args,
     write_json,
 )
+from jaxfog.tools import CompileTimer, max_rss_mib
 
 STRATEGIES: dict[str, dict] = {
     "free_flight": dict(equiangular=False, light_lobe=0.0, distance_mix=0.0),
@@ -153,13 +157,6 @@ ONE_PIXEL = 0.5
 """A strategy whose final squared error is more than this share in one pixel is flagged as dominated by a firefly."""
 
 
-def mean_and_se(values) -> tuple[float, float]:
-    """Mean of independent samples and its standard error (`std(ddof=1) / sqrt(n)`; nan for one sample)."""
-    v = np.asarray(values, np.float64)
-    se = float(np.std(v, ddof=1) / math.sqrt(v.size)) if v.size > 1 else float("nan")
-    return float(np.mean(v)), se
-
-
 def variance_per_spp(chunks, chunk_spp: int) -> float:
     """Variance of one sample, averaged over pixels and channels, from independent images of `chunk_spp` spp each:
     `chunk_spp * mean(var over images, ddof=1)`. An unbiased n-spp image's expected MSE against the truth is this
@@ -232,9 +229,6 @@ def pick_depth(table, rel_error: float, metric: str = "pixel") -> int | None:
 
 
 # ================================================================================================ measurement
-from jaxfog.tools import CompileTimer, max_rss_mib  # noqa: E402
-
-
 RenderFn = Callable[..., np.ndarray]
 """`render_fn(scene, seed, spp, **strategy) -> (H, W, 3) numpy image`; the result must be on the host."""
 
@@ -330,6 +324,14 @@ def jaxfog_render_fn(paths_per_call: int) -> RenderFn:
     return fn
 
 
+def spp_timer(render_fn: RenderFn, scene, seed: int, spp: int) -> Callable[[], float]:
+    """`timer()`: wall seconds per spp of one `render_fn` call of `spp` spp with the default strategy (key
+    `9_000_000 + seed`; the caller compiles that program first), to time jaxfog right before and after another
+    renderer's run, under the same load."""
+    return lambda: time_calls(lambda _: render_fn(scene, 9_000_000 + seed, spp, **STRATEGIES[DEFAULT_STRATEGY]), 1,
+                              warmup=0)["median_s"] / spp
+
+
 def timed_draws(scene, seed: int, strategy: dict) -> Callable[[int, int], tuple[list, list]]:
     """`draws(spp, n)`: `n` independent jaxfog images of `spp` spp as `jaxfog.render(scene, key, spp)` makes them
     (its default batching), each timed as one call after a compiling call (a program per spp below a full batch),
@@ -339,21 +341,17 @@ def timed_draws(scene, seed: int, strategy: dict) -> Callable[[int, int], tuple[
     render_default = jaxfog_render_fn(DEFAULT_BATCH_PATHS)
 
     def draws(spp: int, n: int):
-        render_default(scene, 8_999_999, spp, **strategy)
-        imgs, times = [], []
-        for i in range(n):
-            t0 = time.perf_counter()
-            imgs.append(render_default(scene, 8_000_000 + 100_000 * seed + 1000 * spp + i, spp, **strategy))
-            times.append(time.perf_counter() - t0)
-        return imgs, times
+        t = time_calls(lambda i: render_default(scene, 8_000_000 + 100_000 * seed + 1000 * spp + i, spp, **strategy),
+                       n, keep=True)
+        return t["values"], t["wall_s"]
 
     return draws
 
 
 def xla_memory(scene, strategy: dict, paths_per_call: int) -> dict | None:
     """XLA's `memory_analysis()` of the compiled batch that `render` runs (hits the in-memory compile cache); it
-    lowers the private `jaxfog._render._render_items`, so it reports `{"error": ...}` where those internals have
-    changed shape."""
+    lowers `jaxfog.tools.render_items`, the render loop's own batch, so it reports `{"error": ...}` where that
+    function's arguments have changed shape."""
     try:
         import jax
         import jax.numpy as jnp
@@ -400,27 +398,25 @@ def reference_image(sf, cfg: Config, cache_dir: Path, render_fn: RenderFn, fresh
         log(f"  reference: cached {path.name}")
     else:
         per_chunk = cfg.ref_spp // cfg.ref_chunks
-        chunks, times = [], []
-        with CompileTimer() as ct:
-            render_fn(sf.scene, 7_000_000 + cfg.seed, per_chunk, **STRATEGIES[DEFAULT_STRATEGY])  # compiles
-        compile_s = ct.seconds
-        for i in range(cfg.ref_chunks):
-            t0 = time.perf_counter()
-            chunks.append(render_fn(sf.scene, 1_000_000 + 1000 * cfg.seed + i, per_chunk,
-                                    **STRATEGIES[DEFAULT_STRATEGY]))
-            times.append(time.perf_counter() - t0)
-            log(f"  reference chunk {i + 1}/{cfg.ref_chunks}: {per_chunk} spp in {times[-1]:.1f} s")
-        chunks, times, cached = np.stack(chunks).astype(np.float32), np.asarray(times), False
-        cache_dir.mkdir(parents=True, exist_ok=True)
+        t = time_calls(lambda i: render_fn(sf.scene, 1_000_000 + 1000 * cfg.seed + i, per_chunk,
+                                           **STRATEGIES[DEFAULT_STRATEGY]), cfg.ref_chunks, keep=True)
+        compile_s = t["compile_s"]
+        chunks, times, cached = np.stack(t["values"]).astype(np.float32), np.asarray(t["wall_s"]), False
+        log(f"  reference: {cfg.ref_chunks} chunks of {per_chunk} spp in {times.sum():.1f} s")
         save_npz(path, compressed=True, chunks=chunks, times=times)
+    return {**reference_stats(chunks), "spp": cfg.ref_spp, "render_s": float(np.sum(times)), "cached": cached,
+            "file": path.name, "compile_s": compile_s}
+
+
+def reference_stats(chunks) -> dict:
+    """A reference from independent equal chunks `(k, H, W, 3)`: their average `image`, the `chunks` and their
+    number `chunks_n`, the mean pixel value with its standard error over the chunks, and the average's own RMSE
+    (`reference_rmse` of the two halves), also relative to the mean."""
     k = chunks.shape[0]
-    half_a, half_b = chunks[: k // 2].mean(0), chunks[k // 2:].mean(0)
-    image = chunks.mean(0)
     mean, se = mean_and_se(chunks.reshape(k, -1).mean(1))
-    r = reference_rmse(half_a, half_b)
-    return {"image": image, "chunks": chunks, "spp": cfg.ref_spp, "chunks_n": k, "mean": mean, "mean_se": se,
-            "rmse": r, "rel_rmse": r / mean, "render_s": float(np.sum(times)), "cached": cached, "file": path.name,
-            "compile_s": compile_s}
+    r = reference_rmse(chunks[: k // 2].mean(0), chunks[k // 2:].mean(0))
+    return {"image": chunks.mean(0), "chunks": chunks, "chunks_n": k, "mean": mean, "mean_se": se, "rmse": r,
+            "rel_rmse": r / mean}
 
 
 def structure(sf) -> str:
@@ -490,15 +486,13 @@ def depth_study(cfg: Config, log=print) -> dict:
         per_depth = {}
         for d in depths:
             scene = load(name, cfg.depth_size, [f"integrator.max_depth={d}"]).scene
-            with CompileTimer() as ct:  # a warm-up render: compiles where no earlier render had this structure
-                np.asarray(jf.render(scene, jax.random.key(999), L, sampling=sampling))
-            compile_s = ct.seconds if ct.seconds > 0 else None
-            imgs, elapsed = [], 0.0
-            for k in keys:
-                t0 = time.perf_counter()
-                imgs.append(np.asarray(jf.render(scene, k, L, sampling=sampling), np.float64).reshape(n_pix, 3))
-                elapsed += time.perf_counter() - t0
-            per_depth[d] = {"layers": np.stack(imgs), "time_per_spp_s": elapsed / spp, "compile_s": compile_s}
+            # after a warm-up render, which compiles where no earlier render had this structure
+            t = time_calls(lambda c: np.asarray(jf.render(scene, keys[c], L, sampling=sampling), np.float64), n_calls,
+                           keep=True)
+            compile_s = t["compile_s"] or None
+            elapsed = sum(t["wall_s"])
+            per_depth[d] = {"layers": np.stack(t["values"]).reshape(n_calls, n_pix, 3), "time_per_spp_s": elapsed / spp,
+                            "compile_s": compile_s}
             log(f"  {name} max_depth {d:3d}: {1e3 * elapsed / spp:7.0f} ms/spp at {cfg.depth_size}x{cfg.depth_size}"
                 + (f" (compile {compile_s:.1f} s)" if compile_s is not None else ""))
         ref_layers = per_depth[ref_depth]["layers"]  # (images, n_pix, 3)
@@ -531,34 +525,6 @@ def depth_study(cfg: Config, log=print) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------------- mitsuba
-def run_mitsuba(name: str, size: int, spp: int, chunks: int, workdir: Path, python: str = sys.executable,
-                env: dict | None = None, timeout: float = 1800, seed0: int = 0, variant: str | None = None) -> dict:
-    """Render the scene in Mitsuba 3 in a subprocess (`benchmarks.bench_mitsuba`): the images (Mitsuba seeds `seed0`,
-    `seed0 + 1`, ...), times, memory; or `{"skipped": reason}` when Mitsuba (or its LLVM backend) is not there."""
-    workdir.mkdir(parents=True, exist_ok=True)
-    out = workdir / f"mitsuba_{name}_{size}.npz"
-    if out.exists():
-        out.unlink()
-    cmd = [python, "-m", "benchmarks.bench_mitsuba", str(scene_path(name)), "--set", f"camera.width={size}",
-           "--set", f"camera.height={size}", "--spp", str(spp), "--chunks", str(chunks), "--seed", str(seed0), "--out", str(out),
-           "--quiet"] + ([] if variant is None else ["--variant", variant])
-    try:
-        p = subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env(env), timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return {"skipped": f"Mitsuba did not finish within {timeout:.0f} s"}
-    if p.returncode != 0 or not out.exists():
-        lines = [x.strip() for x in (p.stderr or "").strip().splitlines() if x.strip()]
-        reason = lines[-1] if lines else f"exit code {p.returncode}"
-        if p.returncode < 0 or p.returncode > 128:  # killed by a signal, e.g. an LLVM backend that aborts
-            first = next((x for x in lines if "error" in x.lower()), reason)
-            reason = f"Mitsuba's process died (exit code {p.returncode}): {first[:200]}"
-        return {"skipped": reason.replace("mitsuba skipped: ", "")}
-    z = np.load(out)
-    res = {k: z[k] for k in z.files}
-    out.unlink()
-    return res
-
-
 def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir: Path, log=print,
                     jax_time_per_spp: Callable[[], float] | None = None,
                     jax_draws: Callable[[int, int], tuple[list, list]] | None = None, **kw) -> dict:
@@ -726,23 +692,19 @@ def format_tables(result: dict) -> str:
         lines.append(f"== {name} ({sc['width']}x{sc['height']}, max_depth {sc['max_depth']}); reference: default strategy, "
                      f"{ref['spp']} spp, mean pixel {ref['mean']:.4g} +- {ref['mean_se']:.2g}, its own RMSE "
                      f"{ref['rmse']:.3g} ({100 * ref['rel_rmse']:.1f}% of the mean, from its halves)")
-        spps = [x["spp"] for x in next(iter(sc["strategies"].values()))["levels"]]
-        head = (f"{'strategy':12s} {'compile s':>9s} {'ms/spp':>7s} {'kpath/s':>7s} {'XLA MiB':>7s} | "
-                + " ".join(f"{'@' + str(s):>6s} " for s in spps)
-                + f" | {'t to ' + format(100 * sc['target_rel_rmse'], '.1f') + '%':>10s} {'vs default':>10s}")
         lines.append("relative RMSE (corrected for the reference's own noise) at each spp; time to a common RMSE")
-        lines.append(head)
-        lines.append("-" * len(head))
-        for sname, s in sc["strategies"].items():
-            mem = s.get("xla_memory") or {}
-            mem_s = f"{mem['total_mib']:.1f}" if "total_mib" in mem else "-"
-            rel = " ".join(f"{x['rel_rmse_corrected']:6.3g}" + ("!" if x.get("worst_pixel_share", 0) > ONE_PIXEL else " ")
-                           for x in s["levels"])
-            how = "*" if s["time_to_target_how"] == "extrapolated" else " "
-            shared = "+" if s.get("compiled_by", sc["scene"]) != sc["scene"] else " "
-            lines.append(f"{sname:12s} {s.get('compile_s_first', s['compile_s']):8.1f}{shared} {_fmt_ms(s['time_per_spp_s']):>7s} "
-                         f"{s['paths_per_s'] / 1e3:7.1f} {mem_s:>7s} | {rel} | {s['time_to_target_s']:9.1f}{how} "
-                         f"{s.get('time_ratio_to_default', float('nan')):10.2f}")
+        levels = [(i, x["spp"]) for i, x in enumerate(next(iter(sc["strategies"].values()))["levels"])]
+        lines.append(format_table([{"strategy": k, **v, "shared": v.get("compiled_by", sc["scene"]) != sc["scene"]}
+                                   for k, v in sc["strategies"].items()], [
+            ("strategy", "strategy"),
+            ("compile s", lambda s: f"{s.get('compile_s_first', s['compile_s']):.1f}" + ("+" if s["shared"] else " ")),
+            ("ms/spp", "time_per_spp_s", _fmt_ms), ("kpath/s", lambda s: s["paths_per_s"] / 1e3, ".1f"),
+            ("XLA MiB", lambda s: (s.get("xla_memory") or {}).get("total_mib"), ".1f"),
+            *((f"@{n}", lambda s, i=i: s["levels"][i], lambda x: f"{x['rel_rmse_corrected']:.3g}"
+               + ("!" if x.get("worst_pixel_share", 0) > ONE_PIXEL else " ")) for i, n in levels),
+            (f"t to {100 * sc['target_rel_rmse']:.1f}%", lambda s: f"{s['time_to_target_s']:.1f}"
+             + ("*" if s["time_to_target_how"] == "extrapolated" else " ")),
+            ("vs default", lambda s: s.get("time_ratio_to_default", float("nan")), ".2f")]))
         lines.append(f"(! more than {ONE_PIXEL:.0%} of the squared error in one pixel: a firefly; "
                      "* extrapolated with RMSE ~ t^-1/2; compile = JAX trace + lower + XLA compile of the first "
                      "compilation, + where it happened for another render of the same structure (reference, earlier "
@@ -765,21 +727,18 @@ def format_tables(result: dict) -> str:
         lines.append(f"== depth against bias ({dp['width']}x{dp['height']}, {dp['spp']} spp, common random numbers, "
                      "default strategy): bias against the deepest row (reference) relative to its mean; 'pixel bias' is "
                      "the per-pixel RMSE beyond noise, '(noise)' that estimate's own noise level")
-        head = (f"{'scene':15s} {'depth':>5s} {'mean':>9s} {'mean bias':>10s} {'+-se':>7s} {'pixel bias':>10s} "
-                f"{'(noise)':>8s} {'ms/spp':>7s} {'x ms/spp@8':>10s}")
-        lines.append(head)
-        lines.append("-" * len(head))
+        rows = []
         for name, s in dp["scenes"].items():
             if s.get("largest_path_share", 0) > 0.05:
                 lines.append(f"{name}: one path of the {dp['spp']} x {dp['width']}x{dp['height']} carries "
                              f"{100 * s['largest_path_share']:.0f}% of the reference's mean: its rows are not resolved")
             t8 = next((r["time_per_spp_s"] for r in s["rows"] if r["depth"] == 8), None)
-            for r in s["rows"]:
-                rel_t = r["time_per_spp_s"] / t8 if t8 else float("nan")
-                lines.append(f"{name:15s} {r['depth']:5d} {r['mean']:9.4g} {100 * r['rel_mean_bias']:9.2f}% "
-                             f"{100 * r['rel_mean_bias_se']:6.2f}% {100 * r['rel_pixel_bias']:9.2f}% "
-                             f"{100 * r['rel_pixel_noise']:7.2f}% {_fmt_ms(r['time_per_spp_s']):>7s} {rel_t:10.2f}"
-                             + ("  (reference)" if r["is_reference"] else ""))
+            rows += [{"scene": name, **r, "rel_t": r["time_per_spp_s"] / t8 if t8 else float("nan")} for r in s["rows"]]
+        lines.append(format_table(rows, [
+            ("scene", "scene"), ("depth", "depth"), ("mean", "mean", ".4g"), ("mean bias", "rel_mean_bias", ".2%"),
+            ("+-se", "rel_mean_bias_se", ".2%"), ("pixel bias", "rel_pixel_bias", ".2%"),
+            ("(noise)", "rel_pixel_noise", ".2%"), ("ms/spp", "time_per_spp_s", _fmt_ms),
+            ("x ms/spp@8", "rel_t", ".2f"), ("", lambda r: "(reference)" if r["is_reference"] else "")]))
         picks = dp.get("picks")
         max_measured = max((r["depth"] for s in dp["scenes"].values() for r in s["rows"] if not r["is_reference"]),
                            default=0)
@@ -915,7 +874,7 @@ def plot_depth(depth: dict, path: Path) -> None:
 def configure(p: argparse.ArgumentParser) -> None:
     """Adds the benchmark's arguments to `p` (`python -m benchmarks.bench`)."""
     p.add_argument("--quick", action="store_true", help="a small, fast smoke run (16x16, few spp)")
-    p.add_argument("--out", default=str(REPO / "bench_out"), metavar="DIR",
+    p.add_argument("--out", default=str(OUT), metavar="DIR",
                    help="output folder: bench.json, PNGs, cache/ with the references (default: bench_out in the "
                         "repository root)")
     p.add_argument("--scenes", nargs="+", metavar="SCENE", help="benchmark scenes (names or .json paths)")
@@ -947,17 +906,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
-    cfg = dataclasses.replace(QUICK if args.quick else FULL)
-    pairs = {"scenes": args.scenes, "parts": args.parts, "size": args.size, "levels": args.levels,
-             "ref_spp": args.ref_spp, "strategies": args.strategies, "depth_scenes": args.depth_scenes,
-             "depths": args.depths, "depth_size": args.depth_size,
-             "depth_spp": args.depth_spp, "mitsuba_chunks": args.mitsuba_chunks, "mitsuba_spp": args.mitsuba_spp,
-             "mitsuba_variant": args.mitsuba_variant,
-             "equal_error_draws": args.equal_error_draws}
-    for k, v in pairs.items():
-        if v is not None:
-            setattr(cfg, k, tuple(v) if isinstance(v, list) else v)
-    cfg.seed = args.seed
+    cfg = with_args(QUICK if args.quick else FULL, args)
     if args.depth_ref is not None:
         cfg.depth_refs = (args.depth_ref,) * len(cfg.depth_scenes)
     elif len(cfg.depth_refs) != len(cfg.depth_scenes):
@@ -1014,16 +963,10 @@ def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.0
             log(f"Mitsuba 3 on {name}: {cfg.mitsuba_chunks} renders of {cfg.mitsuba_spp} spp")
             sf = load(name, cfg.size)
             fn = jaxfog_render_fn(cfg.size * cfg.size * cfg.levels[0])
-            spp_t = max(8, cfg.levels[0])
-
-            def jax_time_per_spp():
-                t0 = time.perf_counter()
-                fn(sf.scene, 9_000_000 + cfg.seed, spp_t, **STRATEGIES[DEFAULT_STRATEGY])
-                return (time.perf_counter() - t0) / spp_t
-
+            timer = spp_timer(fn, sf.scene, cfg.seed, max(8, cfg.levels[0]))
             jax_draws = timed_draws(sf.scene, cfg.seed, STRATEGIES[DEFAULT_STRATEGY])
             result["mitsuba"] = mitsuba_compare(name, cfg, refs[name], result["scenes"][name], cache, log=log,
-                                                jax_time_per_spp=jax_time_per_spp, jax_draws=jax_draws)
+                                                jax_time_per_spp=timer, jax_draws=jax_draws)
         else:
             result["mitsuba"] = {"scene": name, "skipped": f"{name} is not among the benchmark scenes of this run"}
     result["memory"] = {"jaxfog process max_rss": max_rss_mib()}
@@ -1033,7 +976,6 @@ def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.0
     for name, sc in (result.get("scenes") or {}).items():
         result["memory"][f"XLA batch {name} (max over strategies)"] = max(
             (s["xla_memory"] or {}).get("total_mib", 0.0) for s in sc["strategies"].values())
-    result["machine"]["loadavg_end"] = list(os.getloadavg())
     result["total_wall_s"] = time.perf_counter() - t_start
     write_json(out / "bench.json", result)
     if plots:
@@ -1052,9 +994,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"benchmarks.bench: error: {e}", file=sys.stderr)
         return 2
     out = Path(args.out)
-    log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     result = run_benchmark(cfg, out, fresh_ref=args.fresh_ref, max_bias=tuple(args.max_bias),
-                           plots=not args.no_plots, log=log)
+                           plots=not args.no_plots, log=stderr_log)
     print(format_tables(result))
     print(f"\nwrote {out / 'bench.json'}" + ("" if args.no_plots else " and PNGs")
           + f" in {result['total_wall_s']:.0f} s (load average {result['machine']['loadavg_start'][0]:.1f} at start, "

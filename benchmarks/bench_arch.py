@@ -6,17 +6,19 @@
 Run it for two checkouts in turn (A B A B ..., e.g. with `PYTHONPATH=<checkout>`) and compare the runs pair by pair:
 docs/results/architecture/README.md.
 """
-import json, sys, time
+import json
+import sys
+
 import jaxfog as jf
+
 jf.use_cpu_cores()
-import jax
-sf = jf.load_scene(sys.argv[1] if len(sys.argv) > 1 else "data_synthetic/scenes/spot_fog.json")
-t0, c0 = time.perf_counter(), time.process_time()
-jf.render(sf.scene, jax.random.key(0), 1).block_until_ready()
-first, first_cpu = time.perf_counter() - t0, time.process_time() - c0
-jf.render(sf.scene, jax.random.key(1), 4).block_until_ready()
-t0, c0 = time.perf_counter(), time.process_time()
-jf.render(sf.scene, jax.random.key(2), 16).block_until_ready()
-ms, ms_cpu = (time.perf_counter() - t0) / 16 * 1e3, (time.process_time() - c0) / 16 * 1e3
-print(json.dumps({"code": jf.__file__, "first_call_s": first, "first_call_cpu_s": first_cpu, "ms_per_spp": ms,
-                  "cpu_ms_per_spp": ms_cpu}))
+import jax  # noqa: E402
+
+from benchmarks.common import scene_path, time_calls  # noqa: E402
+
+sf = jf.load_scene(sys.argv[1] if len(sys.argv) > 1 else scene_path("spot_fog"))
+first = time_calls(lambda _: jf.render(sf.scene, jax.random.key(0), 1).block_until_ready(), 1, warmup=0)
+jf.render(sf.scene, jax.random.key(1), 4).block_until_ready()  # warm-up
+t = time_calls(lambda _: jf.render(sf.scene, jax.random.key(2), 16).block_until_ready(), 1, warmup=0)
+print(json.dumps({"code": jf.__file__, "first_call_s": first["wall_s"][0], "first_call_cpu_s": first["cpu_s"][0],
+                  "ms_per_spp": t["wall_s"][0] / 16 * 1e3, "cpu_ms_per_spp": t["cpu_s"][0] / 16 * 1e3}))

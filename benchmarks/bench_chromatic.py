@@ -1,19 +1,20 @@
-"""Variance of chromatic free-flight sampling: one-sample spectral MIS against the former scalar rate.
+"""Variance of chromatic free-flight sampling: one-sample spectral MIS against a scalar rate
+(`HomogeneousMedium(..., spectral_mis=False)`).
 
 For two RGB media in the `spot_fog` scene (32 x 32), both schemes render `keys` independent images of `spp`
 samples each; both are unbiased, so the per-pixel MSE of an image is its variance over keys. Times are the median
 of the timed renders (after compilation), alternating the two schemes. The MSE at equal time scales the scalar
 scheme's MSE by its time ratio (MSE ~ 1 / time): `MSE_old * t_old / t_mis` is the old scheme's MSE had it run as
-long as spectral MIS. Writes `docs/results/chromatic.json`; the table is in `docs/results/chromatic.md`.
+long as spectral MIS. Writes `chromatic.json` to `--out` (default `bench_out/bench_chromatic/`); the table of a run is
+in `docs/results/chromatic.md`.
 
-    python -m benchmarks.bench_chromatic [--keys 16] [--spp 32] [--size 32]
+    python -m benchmarks.bench_chromatic [--keys 16] [--spp 32] [--size 32] [--out FILE.json]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import equinox as eqx
 import jax
@@ -21,7 +22,7 @@ import numpy as np
 
 import jaxfog as jf
 
-from .common import REPO
+from .common import command, interleave, out_dir, write_json
 
 MEDIA = {
     "haze (0.5, 1.5, 3.0)": dict(sigma_t=(0.5, 1.5, 3.0), albedo=(0.9, 0.9, 0.9)),
@@ -41,28 +42,22 @@ def main(argv=None):
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--size", type=int, default=32)
     ap.add_argument("--scene", default="data_synthetic/scenes/spot_fog.json")
-    ap.add_argument("--out", default=str(REPO / "docs" / "results" / "chromatic.json"))
+    ap.add_argument("--out", default=str(out_dir("bench_chromatic") / "chromatic.json"))
     a = ap.parse_args(argv)
     base = jf.load_scene(a.scene).scene
     rows = []
     for name, kw in MEDIA.items():
         scenes = {mis: scene_with(base, a.size, jf.HomogeneousMedium(**kw, phase=base.medium.phase, spectral_mis=mis))
                   for mis in (True, False)}
-        imgs = {True: [], False: []}
-        times = {True: [], False: []}
-        for mis in (True, False):  # compile
-            jax.block_until_ready(jf.render(scenes[mis], jax.random.key(999), a.spp))
-        for k in range(a.keys):
-            for mis in ((True, False) if k % 2 == 0 else (False, True)):
-                t0 = time.perf_counter()
-                img = jax.block_until_ready(jf.render(scenes[mis], jax.random.fold_in(jax.random.key(77), k), a.spp))
-                times[mis].append(time.perf_counter() - t0)
-                imgs[mis].append(np.asarray(img, np.float64))
+        # the two schemes alternate image by image (the same key k for both), after one compiling render each
+        t = interleave({mis: (lambda k, sc=sc: np.asarray(jf.render(sc, jax.random.fold_in(jax.random.key(77), k),
+                                                                    a.spp), np.float64)) for mis, sc in scenes.items()},
+                       a.keys, alternate=True, keep=True)
         res = {}
         for mis in (True, False):
-            x = np.stack(imgs[mis])
+            x = np.stack(t[mis]["values"])
             res[mis] = dict(mse=x.var(axis=0, ddof=1).mean(axis=(0, 1)).tolist(), mean=x.mean(axis=(0, 1, 2)).tolist(),
-                            time=float(np.median(times[mis])))
+                            time=t[mis]["median_s"])
         # per-channel reference: the grey medium with that channel's values (both schemes are the same there)
         ref = []
         for c in range(3):
@@ -72,15 +67,15 @@ def main(argv=None):
             g = np.stack(g_imgs)[..., c].mean(axis=(1, 2))
             ref.append(dict(mean=float(g.mean()), se=float(g.std(ddof=1) / np.sqrt(len(g)))))
         for mis in (True, False):
-            x = np.stack(imgs[mis]).mean(axis=(1, 2))
+            x = np.stack(t[mis]["values"]).mean(axis=(1, 2))
             res[mis]["mean_se"] = (x.std(axis=0, ddof=1) / np.sqrt(len(x))).tolist()
         ratio = res[False]["time"] / res[True]["time"]
         rows.append(dict(medium=name, **kw, spp=a.spp, keys=a.keys, size=a.size, mis=res[True], scalar=res[False],
                          grey_reference=ref,
                          scalar_mse_at_equal_time=[m * ratio for m in res[False]["mse"]]))
         print(json.dumps(rows[-1]), flush=True)
-    with open(a.out, "w") as f:
-        json.dump(dict(scene=a.scene, rows=rows), f, indent=1)
+    write_json(a.out, dict(scene=a.scene, rows=rows, command=command("python -m benchmarks.bench_chromatic", argv)))
+    print(f"wrote {a.out}")
 
 
 if __name__ == "__main__":

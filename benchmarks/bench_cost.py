@@ -1,4 +1,4 @@
-"""The cost of a sample, jaxfog against Mitsuba 3, in one run (issue 17, item 3).
+"""The cost of a sample, jaxfog against Mitsuba 3, in one run.
 
     python -m benchmarks.bench_cost [--scene spot_fog] [--blocks 4] [--reps 3] [--spp 16] [--mitsuba-spp 64]
                                     [--mitsuba-variant llvm_ad_rgb] [--out DIR]
@@ -7,7 +7,7 @@
 Both renderers on every core (jaxfog: `jaxfog.use_cpu_cores()`; Mitsuba: Dr.Jit's thread pool), the scene at its
 own size and `max_depth`, no Russian roulette on either side (`jaxfog.to_mitsuba`). The run alternates blocks, so a
 drift of the machine's speed hits every row alike: a jaxfog block renders `--reps` images with each jaxfog
-configuration (compiled before the first block), a Mitsuba block is one subprocess (`benchmarks.bench_mitsuba`) that
+configuration (compiled before the first block), a Mitsuba block is one subprocess (`bench_mitsuba.run_mitsuba`) that
 compiles its kernels on a warm-up render and then times `--reps` renders of `--mitsuba-spp`. Rows:
 
 - `jaxfog default`: `render(scene, key, spp)` with the default sampling (equiangular, light-angle lobe, distance
@@ -19,53 +19,27 @@ compiles its kernels on a warm-up render and then times `--reps` renders of `--m
 
 Each figure is ms per sample per pixel of the whole image (per call for the last row): the median over all timed
 renders, with min and max; the ratio column divides each jaxfog block's median by the Mitsuba block next to it
-(median over the block pairs). Prints a table and writes `cost.json` to `--out` (default
-`docs/results/bench/cost`).
+(median over the block pairs). Prints a table and writes `cost.json` to `--out` (default `bench_out/cost` in the
+repository).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
+import json
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
+from benchmarks.bench_mitsuba import run_mitsuba
+from benchmarks.common import command, git_commit, out_dir, print_table, scene_path, time_calls, write_json
 
-from benchmarks.common import REPO, machine_info, scene_path, subprocess_env, write_json
-
-OUT = REPO / "bench_out" / "cost"
 CONFIGS = {
     "jaxfog default": {},
     "jaxfog, Mitsuba's techniques": {"equiangular": False, "light_lobe": 0.0, "distance_mix": 0.0},
 }
-
-
-def _mitsuba_block(scene: Path, spp: int, reps: int, seed: int, variant: str, timeout: float = 1800) -> dict:
-    """One Mitsuba subprocess: warm-up render (compiles), then `reps` timed renders; returns its npz fields."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "m.npz"
-        cmd = [sys.executable, "-m", "benchmarks.bench_mitsuba", str(scene), "--spp", str(spp), "--chunks", str(reps),
-               "--seed", str(seed), "--variant", variant, "--out", str(out), "--quiet"]
-        r = subprocess.run(cmd, cwd=REPO, env=subprocess_env(), capture_output=True, text=True, timeout=timeout)
-        if r.returncode != 0:
-            raise RuntimeError(f"Mitsuba block failed (exit {r.returncode}): {r.stderr.strip()[-2000:]}")
-        with np.load(out) as z:
-            return {k: z[k] for k in z.files if k != "images"} | {"mean": float(z["images"].mean())}
-
-
-def _commit() -> str:
-    """The checkout's commit, with "+dirty" when tracked files differ from it ("" outside git)."""
-    try:
-        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
-                               capture_output=True, text=True).stdout.strip()
-        return rev + ("+dirty" if rev and dirty else "")
-    except OSError:
-        return ""
 
 
 def _summary(values):
@@ -109,6 +83,28 @@ def pooled_ratios(results: list[dict]) -> dict:
     return out
 
 
+def _pooled_table(paths) -> None:
+    """`--pool`: the ratios of the block pairs of earlier runs' `cost.json` files, pooled."""
+    results = [json.loads(Path(f).read_text()) for f in paths]
+    print(f"{len(results)} runs pooled; ratio of each jaxfog block's median to the Mitsuba block beside it")
+    rows = [{"row": name, **r} for name, r in pooled_ratios(results).items()]
+    print_table(rows, [("row", "row"), ("pairs", "n"), *((h, k, ".3f") for h, k in (
+        ("median", "median"), ("geo mean", "geometric_mean"), ("q25", "q25"), ("q75", "q75"), ("min", "min"),
+        ("max", "max")))])
+
+
+def _mitsuba_block(path: Path, spp: int, reps: int, seed: int, variant: str) -> dict:
+    """One Mitsuba subprocess (its warm-up render compiles, then `reps` timed renders): its record for the table."""
+    with tempfile.TemporaryDirectory() as tmp:
+        m = run_mitsuba(str(path), None, spp, reps, Path(tmp), seed0=seed, variant=variant)
+    if "skipped" in m:
+        raise RuntimeError(f"Mitsuba block failed: {m['skipped']}")
+    ms = [1000.0 * t / spp for t in m["times"]]
+    return {"ms": ms, "median_ms_per_spp": statistics.median(ms), "warmup_s": float(m["warmup_s"]),
+            "threads": int(m["threads"]), "variant": str(m["variant"]), "version": str(m["version"]),
+            "mean": float(m["images"].mean())}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_cost", description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", default="spot_fog", help="a shipped scene's name or a .json path (default spot_fog)")
@@ -118,19 +114,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mitsuba-spp", type=int, default=64, help="Mitsuba spp per render (default 64)")
     p.add_argument("--mitsuba-variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
     p.add_argument("--no-mitsuba", action="store_true", help="jaxfog rows only")
-    p.add_argument("--out", default=str(OUT), help="output folder (default bench_out/cost)")
+    p.add_argument("--out", default=str(out_dir("cost")), help="output folder (default bench_out/cost)")
     p.add_argument("--pool", nargs="+", metavar="COST_JSON",
                    help="no run: pool the block pairs of these earlier runs' cost.json files and print the ratios")
     args = p.parse_args(argv)
     if args.pool:
-        import json
-
-        results = [json.loads(Path(f).read_text()) for f in args.pool]
-        print(f"{len(results)} runs pooled; ratio of each jaxfog block's median to the Mitsuba block beside it")
-        print(f"{'row':32s} {'pairs':>5s} {'median':>7s} {'geo mean':>8s} {'q25':>6s} {'q75':>6s} {'min':>6s} {'max':>6s}")
-        for name, r in pooled_ratios(results).items():
-            print(f"{name:32s} {r['n']:5d} {r['median']:7.3f} {r['geometric_mean']:8.3f} {r['q25']:6.3f}"
-                  f" {r['q75']:6.3f} {r['min']:6.3f} {r['max']:6.3f}")
+        _pooled_table(args.pool)
         return 0
     for name in ("blocks", "reps", "spp", "mitsuba_spp"):
         if getattr(args, name) < 1:
@@ -141,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     jaxfog.use_cpu_cores()
     import jax
 
-    path = scene_path(args.scene) if not args.scene.endswith(".json") else Path(args.scene)
+    path = scene_path(args.scene)
     sf = jaxfog.load_scene(path)
     scene = sf.scene
     small = jaxfog.load_scene(path, ["camera.width=8", "camera.height=8"]).scene
@@ -150,51 +139,38 @@ def main(argv: list[str] | None = None) -> int:
           f"devices; jaxfog {args.spp} spp per render, Mitsuba {args.mitsuba_variant} {args.mitsuba_spp} spp",
           flush=True)
 
-    fns, first = {}, {}
-    for name, kw in CONFIGS.items():
-        fns[name] = (lambda key, kw=kw: jaxfog.render(scene, key, args.spp, **kw).block_until_ready())
-    fns["jaxfog per call"] = lambda key: jaxfog.render(small, key, 1).block_until_ready()
-    for name, fn in fns.items():
-        t0 = time.perf_counter()
-        fn(jax.random.key(10_000))
-        first[name] = time.perf_counter() - t0
+    keys = itertools.count()  # a fresh key for every render
+    fns = {name: (lambda _, kw=kw: jaxfog.render(scene, jax.random.key(next(keys)), args.spp, **kw).block_until_ready())
+           for name, kw in CONFIGS.items()}
+    fns["jaxfog per call"] = lambda _: jaxfog.render(small, jax.random.key(next(keys)), 1).block_until_ready()
+    first = {name: time_calls(fn, 1, warmup=0)["wall_s"][0] for name, fn in fns.items()}  # compile included
 
     per = {name: [] for name in fns}
     block_medians = {name: [] for name in fns}
-    mitsuba, mitsuba_blocks, means = [], [], {}
-    key = 0
+    mitsuba, mitsuba_blocks = [], []
     for b in range(args.blocks):
         for name, fn in fns.items():
-            ts = []
-            for _ in range(args.reps):
-                t0 = time.perf_counter()
-                fn(jax.random.key(key))
-                key += 1
-                ts.append(time.perf_counter() - t0)
             scale = 1000.0 if name == "jaxfog per call" else 1000.0 / args.spp
-            per[name] += [t * scale for t in ts]
-            block_medians[name].append(statistics.median(ts) * scale)
+            t = time_calls(fn, args.reps, warmup=0)
+            per[name] += [x * scale for x in t["wall_s"]]
+            block_medians[name].append(t["median_s"] * scale)
         if not args.no_mitsuba:
             m = _mitsuba_block(path, args.mitsuba_spp, args.reps, seed=100 * b, variant=args.mitsuba_variant)
-            ms = [1000.0 * t / args.mitsuba_spp for t in m["times"]]
-            mitsuba += ms
-            mitsuba_blocks.append({"median_ms_per_spp": statistics.median(ms), "warmup_s": float(m["warmup_s"]),
-                                   "threads": int(m["threads"]), "variant": str(m["variant"]),
-                                   "version": str(m["version"]), "mean": m["mean"]})
+            mitsuba += m.pop("ms")
+            mitsuba_blocks.append(m)
         print(f"block {b + 1}/{args.blocks}: " + ", ".join(f"{k} {statistics.median(v[-args.reps:]):.2f}"
                                                           for k, v in per.items())
               + (f", Mitsuba {statistics.median(mitsuba[-args.reps:]):.2f}" if mitsuba else ""), flush=True)
 
     rows = table_rows(per, block_medians, mitsuba, mitsuba_blocks, first)
-    print(f"\n{'row':44s} {'median':>8s} {'min':>8s} {'max':>8s}   ratio to Mitsuba (median [min, max])")
-    for r in rows:
-        ratio = r.get("ratio_to_mitsuba")
-        rs = f"{ratio['median']:.3f} [{ratio['min']:.3f}, {ratio['max']:.3f}]" if ratio else ""
-        print(f"{r['row'] + ' (' + r['unit'] + ')':44s} {r['median']:8.2f} {r['min']:8.2f} {r['max']:8.2f}   {rs}")
+    print()
+    print_table(rows, [("row", lambda r: f"{r['row']} ({r['unit']})"), ("median", "median", ".2f"),
+                       ("min", "min", ".2f"), ("max", "max", ".2f"),
+                       ("ratio to Mitsuba (median [min, max])", "ratio_to_mitsuba",
+                        lambda x: f"{x['median']:.3f} [{x['min']:.3f}, {x['max']:.3f}]")])
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     write_json(out / "cost.json", {
-        "machine": machine_info(), "commit": _commit(), "command": "python -m benchmarks.bench_cost " + " ".join(argv or sys.argv[1:]),
+        "commit": git_commit(), "command": command("python -m benchmarks.bench_cost", argv),
         "scene": path.name, "width": cam.width, "height": cam.height, "max_depth": scene.max_depth,
         "spp": args.spp, "mitsuba_spp": args.mitsuba_spp, "blocks": args.blocks, "reps": args.reps,
         "rows": rows, "mitsuba_blocks": mitsuba_blocks,

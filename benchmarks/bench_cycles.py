@@ -72,7 +72,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO, machine_info, save_npz, write_json
+from benchmarks.common import REPO, block_means, format_table, load, machine_info, mean_and_se, out_dir, save_npz
+from benchmarks.common import stderr_log, with_args, write_json
 
 CYCLES_SCRIPT = REPO / "benchmarks" / "cycles_render.py"
 
@@ -310,7 +311,7 @@ def cycles_reference(params: dict, cfg: Config, python: str, cache_dir: Path, ve
                      log=print) -> dict:
     """Cycles' converged reference (`REFERENCE_SETTING`, `ref_chunks` independent images), cached in `cache_dir`
     keyed by the scene parameters, the spp, the seed, Blender's version and the Cycles script."""
-    from benchmarks.bench import mean_and_se, reference_rmse
+    from benchmarks.bench import reference_stats
 
     key = json.dumps({"params": params, "spp": cfg.ref_spp, "chunks": cfg.ref_chunks, "seed": cfg.seed,
                       "setting": SETTINGS[REFERENCE_SETTING], "version": version,
@@ -328,11 +329,8 @@ def cycles_reference(params: dict, cfg: Config, python: str, cache_dir: Path, ve
                                  "seeds": seeds}], python, cache_dir, log=log)
         chunks, times, cached = r["jobs"][0]["images"], r["jobs"][0]["times"], False
         save_npz(path, compressed=True, chunks=chunks, times=times)
-    k = chunks.shape[0]
-    mean, se = mean_and_se(chunks.reshape(k, -1).mean(1))
-    rr = reference_rmse(chunks[: k // 2].mean(0), chunks[k // 2:].mean(0))
-    return {"image": chunks.mean(0).astype(np.float64), "chunks": chunks, "spp": cfg.ref_spp, "chunks_n": k,
-            "mean": mean, "mean_se": se, "rmse": rr, "rel_rmse": rr / mean, "render_s": float(np.sum(times)),
+    ref = reference_stats(chunks)
+    return {**ref, "image": ref["image"].astype(np.float64), "spp": cfg.ref_spp, "render_s": float(np.sum(times)),
             "cached": cached, "file": path.name, "setting": REFERENCE_SETTING}
 
 
@@ -357,16 +355,9 @@ def _jaxfog_side(sf, cfg: Config, cache_dir: Path, fresh: bool, log):
     bcfg = bench.Config(size=cfg.size, ref_spp=cfg.jax_ref_spp, ref_chunks=cfg.jax_ref_chunks, seed=cfg.seed)
     ref = bench.reference_image(sf, bcfg, cache_dir, fn, fresh=fresh, log=log)
     ref["image"] = np.asarray(ref["image"], np.float64)
-    kw = bench.STRATEGIES[bench.DEFAULT_STRATEGY]
-    spp_t = 8
-    fn(sf.scene, 9_000_000 + cfg.seed, spp_t, **kw)  # compiles the timing program
-
-    def time_per_spp() -> float:
-        t0 = time.perf_counter()
-        fn(sf.scene, 9_000_000 + cfg.seed, spp_t, **kw)
-        return (time.perf_counter() - t0) / spp_t
-
-    return ref, time_per_spp, bench.timed_draws(sf.scene, cfg.seed, kw)
+    time_per_spp = bench.spp_timer(fn, sf.scene, cfg.seed, 8)
+    time_per_spp()  # compiles the timing program
+    return ref, time_per_spp, bench.timed_draws(sf.scene, cfg.seed, bench.STRATEGIES[bench.DEFAULT_STRATEGY])
 
 
 def screen_settings(params: dict, cfg: Config, python: str, ref: dict, workdir: Path, log=print) -> dict:
@@ -416,8 +407,6 @@ def equal_error(draws, ref: dict, target: float, n: int, t_cycles: float, max_sp
 
 def run_benchmark(cfg: Config, out: Path, python: str, version: str, fresh_ref: bool = False, log=print) -> dict:
     """The whole measurement (module docstring); writes `out/cycles.json` and returns the result."""
-    from benchmarks.bench import mean_and_se
-    from benchmarks.common import load
     from jaxfog.tools import max_rss_mib
 
     out.mkdir(parents=True, exist_ok=True)
@@ -438,8 +427,6 @@ def run_benchmark(cfg: Config, out: Path, python: str, version: str, fresh_ref: 
     result["means"] = {"jaxfog": jref["mean"], "jaxfog_se": jref["mean_se"], "cycles": cref["mean"],
                        "cycles_se": cref["mean_se"], "ratio_jaxfog_over_cycles": ratio,
                        "ratio_se": ratio * math.hypot(jref["mean_se"] / jref["mean"], cref["mean_se"] / cref["mean"])}
-    from benchmarks.common import block_means
-
     result["means"]["blocks_jaxfog"] = block_means(jref["image"]).tolist()
     result["means"]["blocks_cycles"] = block_means(cref["image"]).tolist()
 
@@ -471,7 +458,6 @@ def run_benchmark(cfg: Config, out: Path, python: str, version: str, fresh_ref: 
         eq["ratio_adjacent"] = eq["spp"] * 0.5e-3 * (result["jaxfog_ms_per_spp"]["before"]
                                                     + result["jaxfog_ms_per_spp"]["after"]) / t_cyc
     result["equal_error"] = eq
-    result["machine"]["loadavg_end"] = list(os.getloadavg())
     result["max_rss_mib_jaxfog"] = max_rss_mib()
     result["total_wall_s"] = time.perf_counter() - t_start
     write_json(out / "cycles.json", result)
@@ -486,12 +472,12 @@ def format_tables(r: dict) -> str:
              f"{r['screen']['threads']} Cycles threads", "",
              f"Cycles settings ({cfg['screen_images']} images of {cfg['cycles_spp']} spp each; rel. RMSE = corrected "
              "per-pixel RMSE against Cycles' own reference / its mean):", "",
-             "| setting | volume_sampling | guiding | ms / spp | median rel. RMSE | mean-MSE rel. RMSE | "
-             "time to the best's error (x best) |", "| --- | --- | --- | --- | --- | --- | --- |"]
-    for s, v in r["screen"]["settings"].items():
-        mark = " (best)" if s == r["screen"]["best"] else ""
-        lines.append(f"| {s}{mark} | {v['volume_sampling']} | {v['guiding']} | {v['ms_per_spp']:.1f} | "
-                     f"{v['rel_rmse_median']:.3f} | {v['rel_rmse_mean_mse']:.3f} | {v['time_to_best_error_ratio']:.2f} |")
+             format_table([{"setting": s + (" (best)" if s == r["screen"]["best"] else ""), **v}
+                           for s, v in r["screen"]["settings"].items()],
+                          [("setting", "setting"), ("volume_sampling", "volume_sampling"), ("guiding", "guiding"),
+                           ("ms / spp", "ms_per_spp", ".1f"), ("median rel. RMSE", "rel_rmse_median", ".3f"),
+                           ("mean-MSE rel. RMSE", "rel_rmse_mean_mse", ".3f"),
+                           ("time to the best's error (x best)", "time_to_best_error_ratio", ".2f")], markdown=True)]
     t, eq, jm = r["cycles_target"], r["equal_error"], r["jaxfog_ms_per_spp"]
     lines += ["", f"Cycles setup: scene build {r['screen']['setup_s']:.2f} s, first render (BVH, kernels) "
               f"{r['screen']['first_render_s']:.2f} s", "",
@@ -516,7 +502,7 @@ def format_tables(r: dict) -> str:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_cycles", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="smoke run: 16 x 16, few spp")
-    p.add_argument("--out", default=str(REPO / "bench_out" / "cycles"), help="output folder (default bench_out/cycles)")
+    p.add_argument("--out", default=str(out_dir("cycles")), help="output folder (default bench_out/cycles)")
     p.add_argument("--cycles-python", default=None, metavar="PATH",
                    help="a Python with bpy (default: $JAXFOG_CYCLES_PYTHON, else this interpreter)")
     p.add_argument("--draws", type=int, default=None, help="independent images per renderer at equal error (>= 9)")
@@ -528,11 +514,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def config_from_args(args) -> Config:
-    cfg = QUICK if args.quick else FULL
-    over = {k: v for k, v in (("draws", args.draws), ("cycles_spp", args.cycles_spp), ("seed", args.seed)) if v is not None}
-    if args.settings:
-        over["settings"] = tuple(args.settings)
-    cfg = dataclasses.replace(cfg, **over)
+    cfg = with_args(QUICK if args.quick else FULL, args)
     if cfg.draws < 9 and not args.quick:
         raise ValueError(f"--draws {cfg.draws}: the median needs at least 9 images")
     return cfg
@@ -554,9 +536,8 @@ def main(argv: list[str] | None = None) -> int:
     from jaxfog import use_cpu_cores
 
     use_cpu_cores()
-    log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     out = Path(args.out)
-    result = run_benchmark(cfg, out, python, version, fresh_ref=args.fresh_ref, log=log)
+    result = run_benchmark(cfg, out, python, version, fresh_ref=args.fresh_ref, log=stderr_log)
     print(format_tables(result))
     print(f"\nwrote {out / 'cycles.json'} in {result['total_wall_s']:.0f} s (load average "
           f"{result['machine']['loadavg_start'][0]:.1f} at start, {result['machine']['loadavg_end'][0]:.1f} at end)")

@@ -2,7 +2,7 @@
 the dense fog rendered without bias against Mitsuba 3's unbounded `volpath`.
 
     python -m benchmarks.bench_depth [--parts timing dense area box limit tails] [--size 128] [--cache DIR]
-        [--out docs/results/unbounded]
+        [--out DIR]
 
 1. `timing`: ms/spp of spot_fog_thin, spot_fog and spot_fog_dense at `max_depth` 8 and -1, interleaved in one
    process (A B A B ..., after compilation; median of the rounds and the median of the per-round ratios).
@@ -26,21 +26,27 @@ the dense fog rendered without bias against Mitsuba 3's unbounded `volpath`.
 6. `tails`: the tail index (Hill, survival slope) of single paths (1-spp 256 x 256 images) and of the cached
    images' means, Peng's heavy-tail mean and a truncation lower bound, and a coverage check of Peng's interval.
 
-The JSON keeps the parts that did not run from an earlier run (`runs` says when and how each part ran).
+The JSON (`bench_depth.json` in `--out`, default `bench_out/bench_depth`) keeps the parts that did not run from an
+earlier run (`runs` says when and how each part ran).
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
+import os
+import sys
 import time
 
 import numpy as np
 
-from .common import REPO, block_means, load, machine_info, scene_path, write_json
+from .common import block_means, command, interleave, load, machine_info, mean_and_se, out_dir, save_npz, scene_path
+from .common import write_json
 
 
 def timing(size: int, spp: int, rounds: int, log=print) -> dict:
+    """ms/spp of spot_fog_thin, spot_fog and spot_fog_dense at `max_depth` 8 and -1, interleaved (keys 1 + round)."""
     import jax
 
     import jaxfog as jf
@@ -48,24 +54,14 @@ def timing(size: int, spp: int, rounds: int, log=print) -> dict:
     out = {}
     for name in ("spot_fog_thin", "spot_fog", "spot_fog_dense"):
         scenes = {d: load(name, size, [f"integrator.max_depth={d}"]).scene for d in (8, -1)}
-        for d, sc in scenes.items():  # compile
-            jf.render(sc, jax.random.key(0), spp).block_until_ready()
-        times = {8: [], -1: []}
-        for r in range(rounds):
-            for d, sc in scenes.items():
-                t0 = time.perf_counter()
-                jf.render(sc, jax.random.key(1 + r), spp).block_until_ready()
-                times[d].append((time.perf_counter() - t0) / spp * 1e3)
-        ratio = np.median(np.asarray(times[-1]) / np.asarray(times[8]))
-        out[name] = {"ms_per_spp_depth8": times[8], "ms_per_spp_unbounded": times[-1], "ratio_median": float(ratio)}
-        log(f"{name:16s} depth 8: {np.median(times[8]):7.1f} ms/spp   unbounded: {np.median(times[-1]):7.1f} ms/spp"
+        t = interleave({d: (lambda r, sc=sc: jf.render(sc, jax.random.key(1 + r), spp).block_until_ready())
+                        for d, sc in scenes.items()}, rounds)
+        ms = {d: [x / spp * 1e3 for x in t[d]["wall_s"]] for d in scenes}
+        ratio = t[-1]["ratio_median"]
+        out[name] = {"ms_per_spp_depth8": ms[8], "ms_per_spp_unbounded": ms[-1], "ratio_median": ratio}
+        log(f"{name:16s} depth 8: {np.median(ms[8]):7.1f} ms/spp   unbounded: {np.median(ms[-1]):7.1f} ms/spp"
             f"   unbounded/8 (median of rounds): {ratio:.2f}")
     return out
-
-
-def _mean_se(images):
-    a = np.asarray(images, np.float64)
-    return a.mean(0), a.std(0, ddof=1) / np.sqrt(len(a))
 
 
 def bootstrap_ratio_ci(a, b, n_boot: int = 4000, seed: int = 0, level: float = 0.95) -> tuple[float, float]:
@@ -107,10 +103,10 @@ def compare_images(a_imgs, b_imgs, label: str, log=print, blocks: int = 4) -> di
     image means with its SE (delta method), a bootstrap interval of the ratio, and each side's tail summary."""
     a_m = np.asarray([im.mean() for im in a_imgs], np.float64)
     b_m = np.asarray([im.mean() for im in b_imgs], np.float64)
-    ma, sa = _mean_se(a_m)
-    mb, sb = _mean_se(b_m)
-    ba, bsa = _mean_se([block_means(im, blocks) for im in a_imgs])
-    bb, bsb = _mean_se([block_means(im, blocks) for im in b_imgs])
+    ma, sa = mean_and_se(a_m)
+    mb, sb = mean_and_se(b_m)
+    ba, bsa = mean_and_se([block_means(im, blocks) for im in a_imgs])
+    bb, bsb = mean_and_se([block_means(im, blocks) for im in b_imgs])
     z = (ba - bb) / np.sqrt(bsa**2 + bsb**2)
     zm = (ma - mb) / np.hypot(sa, sb)
     rel = ma / mb - 1.0
@@ -145,8 +141,6 @@ def compare_images(a_imgs, b_imgs, label: str, log=print, blocks: int = 4) -> di
 def _cached_images(path, render_one, n: int, log=print, label: str = "") -> tuple[list, list]:
     """Images `0..n-1` from `render_one(k)` and each one's render time (s; NaN for images from an older cache without
     times), kept in an `.npz` at `path` (None: no cache) so a run can be resumed or extended; the first `n`."""
-    import os
-
     have, secs = [], []
     if path is not None and os.path.exists(path):
         z = np.load(path)
@@ -158,7 +152,7 @@ def _cached_images(path, render_one, n: int, log=print, label: str = "") -> tupl
         have.append(np.asarray(render_one(k), np.float32))
         secs.append(time.perf_counter() - t0)
         if path is not None and ((k + 1) % 8 == 0 or k + 1 == n):
-            np.savez(path, images=np.stack(have), seconds=np.asarray(secs))
+            save_npz(path, images=np.stack(have), seconds=np.asarray(secs))
             log(f"  {label}: {k + 1}/{n} images, {time.perf_counter() - t_start:.0f} s")
     return have[:n], secs[:n]
 
@@ -173,8 +167,6 @@ def area_fog_dense() -> dict:
     instead of the spot light, as a scene dict: neither renderer's estimator has the 1/r^2 weight of next-event
     estimation toward a point light (an area light is sampled by area and MIS-weighted with the phase function, which
     bounds the weight near it), so both have a finite variance and the image-spread SEs mean what they say."""
-    import json
-
     data = json.loads(scene_path("spot_fog_dense").read_text())
     data["name"] = "area_fog_dense"
     data["description"] = "spot_fog_dense lit by a 0.5 x 0.5 m area light at the spot's place (benchmarks.bench_depth)"
@@ -192,23 +184,11 @@ def box_fog_dense() -> dict:
     confined to `BOX_BOUNDS`, as a scene dict. No path vertex comes within 0.4 m of the spot light, so next-event
     estimation's 1/r^2 weight is bounded and both renderers have a finite variance: the image-spread SEs mean what they
     say, with the spot light and the long paths of the dense fog (a random walk of 3 mean free paths per metre)."""
-    import json
-
     data = json.loads(scene_path("spot_fog_dense").read_text())
     data["name"] = "box_fog_dense"
     data["description"] = "spot_fog_dense with the fog in a box below the spot light (benchmarks.bench_depth)"
     data["medium"]["bounds"] = {k: list(v) for k, v in BOX_BOUNDS.items()}
     return data
-
-
-def load_any(scene, size: int, overrides=()):
-    """`load` of a shipped scene by name, or of a scene dict (`area_fog_dense()`), at `size x size`."""
-    if isinstance(scene, str):
-        return load(scene, size, overrides)
-    from jaxfog.tools import scene_from_dict
-
-    return scene_from_dict(scene, source=scene.get("name", "scene"),
-                           overrides=[f"camera.width={size}", f"camera.height={size}", *overrides])
 
 
 def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp: int, fixed_depth: int = 32,
@@ -226,8 +206,6 @@ def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp:
     `sides` renders only those sides (into `cache`, a folder of `.npz` files, so that two processes can share the
     work); the comparison runs when both sides have all their images. `scene`: a shipped scene's name or a scene dict
     (`area_fog_dense()`), its cache files named `{tag}_{size}_...`."""
-    import os
-
     from jaxfog.tools import import_mitsuba
 
     try:
@@ -248,12 +226,12 @@ def dense_vs_mitsuba(size: int, n_images: int, spp: int, mi_images: int, mi_spp:
     for depth, (nj, sj, kj, nm, sm, seed_m) in runs.items():
         over = [f"integrator.max_depth={depth}"]
         if "jaxfog" in sides:
-            sc = load_any(scene, size, over).scene
+            sc = load(scene, size, over).scene
             jx[depth], secs = _cached_images(path(f"jaxfog_d{depth}_spp{sj}"), lambda k: jf.render(
                 sc, jax.random.fold_in(jax.random.key(kj), k), sj), nj, log, f"jaxfog depth {depth}")
             times[f"jaxfog_{depth}"] = None if np.all(np.isnan(secs)) else secs
         if "mitsuba" in sides:
-            msc = mi.load_dict(jf.to_mitsuba(load_any(scene, size, over)))
+            msc = mi.load_dict(jf.to_mitsuba(load(scene, size, over)))
             mx[depth], secs = _cached_images(path(f"mitsuba_d{depth}_spp{sm}"), lambda k: np.asarray(
                 mi.render(msc, spp=sm, seed=seed_m + k))[..., :3], nm, log, f"Mitsuba depth {depth}")
             times[f"mitsuba_{depth}"] = None if np.all(np.isnan(secs)) else secs
@@ -347,22 +325,20 @@ def per_path_values(scene, side: str, n_images: int, depth: int, size: int = 256
     """Single paths' radiance (channel mean) of `scene` at `max_depth = depth`: `n_images` images of `size x size`
     at 1 spp (box filter: a pixel is one path; the pixels of the image together sample the camera's rays as the
     16 x 16 x 256-spp images do), jaxfog (keys fold_in(key(seed0), k)) or Mitsuba (seeds seed0 + k)."""
-    import os
-
     import jax
 
     import jaxfog as jf
 
     over = [f"integrator.max_depth={depth}"]
-    sf = load_any(scene, size, over)
+    sf = load(scene, size, over)
     tag = sf.data.get("name", "scene")
     p = None if cache is None else os.path.join(cache, f"paths_{tag}_{side}_d{depth}_{size}.npz")
     if side == "jaxfog":
         one = lambda k: jf.render(sf.scene, jax.random.fold_in(jax.random.key(seed0), k), 1)  # noqa: E731
     else:
-        import mitsuba as mi
+        from jaxfog.tools import import_mitsuba
 
-        mi.set_variant("scalar_rgb")  # the LLVM variants abort on this machine's libLLVM
+        mi = import_mitsuba("scalar_rgb")  # the LLVM variants abort where Dr.Jit's libLLVM cannot select `fminimum`
         msc = mi.load_dict(jf.to_mitsuba(sf))
         one = lambda k: np.asarray(mi.render(msc, spp=1, seed=seed0 + k))[..., :3]  # noqa: E731
     imgs, _ = _cached_images(p, one, n_images, log, f"paths {tag} {side} depth {depth}")
@@ -396,8 +372,6 @@ def tails(cache: str, n_path_images: int, n_spot_unbiased: int, log=print, sides
     parts' cached images (16 x 16 x 256 spp: 65,536 paths each). `n_path_images` images a case, `n_spot_unbiased`
     for spot_fog_dense unbiased (where only ~1e-4 of the paths carry light)."""
     import glob
-    import os
-
     out = {"paths": {}, "image_means": {}}
     for sc in ("spot_fog_dense", area_fog_dense()):
         name = sc if isinstance(sc, str) else sc["name"]
@@ -425,8 +399,6 @@ def depth_limit(size: int, n_images: int, spp: int, depths=(32, 64, 128), key: i
     roulette stops them, so correlated with the deep fixed depth) must equal the limit. Every estimator here is
     jaxfog's, whose tail is lighter than Mitsuba's (`tails`). With `plain_images`, also that many unbiased images
     without the light-seeking techniques (keys fold_in(key(key + 1), k)) against the default unbiased ones."""
-    import os
-
     import jax
 
     import jaxfog as jf
@@ -444,7 +416,7 @@ def depth_limit(size: int, n_images: int, spp: int, depths=(32, 64, 128), key: i
            "differences": {}, "seconds_per_image": {str(d): float(np.nanmedian(imgs[f"secs_{d}"]))
                                                     for d in (*depths, -1)}}
     for d in (*depths, -1):
-        m, se = _mean_se(imgs[d])
+        m, se = mean_and_se(imgs[d])
         out["means"][str(d)] = [float(m), float(se)]
         log(f"  jaxfog depth {d:4d}: {m:.5g} +- {se:.2g} ({n_images} images, "
             f"{out['seconds_per_image'][str(d)]:.1f} s each)")
@@ -452,7 +424,7 @@ def depth_limit(size: int, n_images: int, spp: int, depths=(32, 64, 128), key: i
     ref = imgs[depths[-1]].mean()
     for b, a in pairs:
         diff = imgs[b] - imgs[a]
-        m, se = _mean_se(diff)
+        m, se = mean_and_se(diff)
         out["differences"][f"{b}-{a}"] = {"mean": float(m), "se": float(se), "rel_to_deepest": float(m / ref),
                                           "rel_se": float(se / ref), "z": float(m / se) if se > 0 else 0.0}
         log(f"  depth {b} - depth {a} (same paths): {m:.4g} +- {se:.2g} = {100 * m / ref:+.2f}% +- "
@@ -477,8 +449,8 @@ def depth_limit(size: int, n_images: int, spp: int, depths=(32, 64, 128), key: i
                                                           sampling=opts), n_images, log, f"jaxfog {d} plain")
             pl[d] = np.asarray(im, np.float64).mean(axis=(1, 2, 3))
         a, b = depths[:2]
-        m, se = _mean_se(pl[b] - pl[a])
-        out["plain_deep"] = {"depths": [a, b], "means": {str(d): list(map(float, _mean_se(pl[d]))) for d in pl},
+        m, se = mean_and_se(pl[b] - pl[a])
+        out["plain_deep"] = {"depths": [a, b], "means": {str(d): list(map(float, mean_and_se(pl[d]))) for d in pl},
                              "diff": float(m), "diff_se": float(se), "rel": float(m / pl[a].mean()),
                              "rel_se": float(se / pl[a].mean())}
         log(f"  plain: depth {b} - depth {a} (same paths): {100 * m / pl[a].mean():+.1f}% +- "
@@ -487,10 +459,6 @@ def depth_limit(size: int, n_images: int, spp: int, depths=(32, 64, 128), key: i
 
 
 def main(argv=None) -> int:
-    import json
-    import os
-    import sys
-
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--parts", nargs="+", choices=("timing", "dense", "area", "box", "limit", "tails"),
                    default=["timing", "dense"],
@@ -531,80 +499,55 @@ def main(argv=None) -> int:
                    help="added to the cross-checks' jaxfog keys and Mitsuba seeds: images independent of a run with "
                         "another offset (default 0)")
     p.add_argument("--cache", default=None, help="folder for the cross-check's images (resumable; default none)")
-    p.add_argument("--out", default=str(REPO / "docs" / "results" / "unbounded"), help="output folder")
+    p.add_argument("--out", default=str(out_dir("bench_depth")),
+                   help="output folder of bench_depth.json (default bench_out/bench_depth)")
     args = p.parse_args(argv)
     import jaxfog as jf
 
     jf.use_cpu_cores()
-    out_json = f"{args.out}/bench_depth.json"
+    if args.cache:
+        os.makedirs(args.cache, exist_ok=True)
+    elif "tails" in args.parts:
+        p.error("--parts tails needs --cache (it reads the dense and area parts' images)")
+    out_json = os.path.join(args.out, "bench_depth.json")
     result = {}
     if os.path.exists(out_json):
         with open(out_json) as fh:
             result = json.load(fh)
-    cmd = "python -m benchmarks.bench_depth " + " ".join(sys.argv[1:] if argv is None else argv)
+    result["machine"] = machine_info()
+    cmd = command("python -m benchmarks.bench_depth", argv)
+    sides = tuple(args.sides)
+    cross = dict(cache=args.cache, variant=args.mitsuba_variant, key_offset=args.key_offset)
+    studies = {  # part -> (the study, what the JSON keeps beside its result)
+        "timing": (lambda: timing(args.size, args.spp, args.rounds), {}),
+        "dense": (lambda: dense_vs_mitsuba(args.dense_size, args.dense_images, args.dense_spp, args.mitsuba_images,
+                                           args.mitsuba_spp, args.fixed_depth, args.fixed_images, args.fixed_spp,
+                                           sides, **cross), {}),
+        "area": (lambda: dense_vs_mitsuba(args.dense_size, args.area_images, args.dense_spp, args.area_images,
+                                          args.dense_spp, args.fixed_depth, args.area_fixed_images, args.fixed_spp,
+                                          sides, scene=area_fog_dense(), tag="area", **cross), {"light": AREA_LIGHT}),
+        "box": (lambda: dense_vs_mitsuba(args.dense_size, args.box_images, args.dense_spp, args.box_mitsuba_images,
+                                         args.dense_spp, args.fixed_depth, args.box_fixed_images, args.fixed_spp,
+                                         sides, scene=box_fog_dense(), tag="box", **cross), {"bounds": BOX_BOUNDS}),
+        "limit": (lambda: depth_limit(args.dense_size, args.limit_images, args.dense_spp, tuple(args.limit_depths),
+                                      cache=args.cache, plain_images=args.plain_images), {}),
+        "tails": (lambda: tails(args.cache, args.path_images, args.spot_path_images, sides=sides), {}),
+    }
     result.setdefault("runs", {})
-    if "timing" in args.parts:
-        result["timing"] = timing(args.size, args.spp, args.rounds)
-        result["runs"]["timing"] = {"date": datetime.date.today().isoformat(), "command": cmd,
-                                    "machine": machine_info()}
-    if "dense" in args.parts:
-        if args.cache:
-            os.makedirs(args.cache, exist_ok=True)
-        dense = dense_vs_mitsuba(args.dense_size, args.dense_images, args.dense_spp, args.mitsuba_images,
-                                 args.mitsuba_spp, args.fixed_depth, args.fixed_images, args.fixed_spp,
-                                 tuple(args.sides), args.cache, variant=args.mitsuba_variant,
-                                 key_offset=args.key_offset)
-        if set(args.sides) != {"jaxfog", "mitsuba"}:
-            print("rendered", args.sides, "only: nothing written")
+    for part in studies:
+        if part not in args.parts:
+            continue
+        study, extra = studies[part]
+        res = study()
+        if part in ("dense", "area", "box", "tails") and set(sides) != {"jaxfog", "mitsuba"}:
+            print("rendered", args.sides, "only: nothing written")  # the other side renders in another process
             return 0
-        result["dense"] = dense
-        result["runs"]["dense"] = {"date": datetime.date.today().isoformat(), "command": cmd,
-                                   "machine": machine_info()}
-    if "area" in args.parts:
-        if args.cache:
-            os.makedirs(args.cache, exist_ok=True)
-        area = dense_vs_mitsuba(args.dense_size, args.area_images, args.dense_spp, args.area_images, args.dense_spp,
-                                args.fixed_depth, args.area_fixed_images, args.fixed_spp, tuple(args.sides),
-                                args.cache, scene=area_fog_dense(), tag="area", variant=args.mitsuba_variant,
-                                key_offset=args.key_offset)
-        if set(args.sides) != {"jaxfog", "mitsuba"}:
-            print("rendered", args.sides, "only: nothing written")
-            return 0
-        result["area"] = {**area, "light": AREA_LIGHT}
-        result["runs"]["area"] = {"date": datetime.date.today().isoformat(), "command": cmd, "machine": machine_info()}
-    if "box" in args.parts:
-        if args.cache:
-            os.makedirs(args.cache, exist_ok=True)
-        box = dense_vs_mitsuba(args.dense_size, args.box_images, args.dense_spp, args.box_mitsuba_images,
-                               args.dense_spp, args.fixed_depth, args.box_fixed_images, args.fixed_spp,
-                               tuple(args.sides), args.cache, scene=box_fog_dense(), tag="box",
-                               variant=args.mitsuba_variant, key_offset=args.key_offset)
-        if set(args.sides) != {"jaxfog", "mitsuba"}:
-            print("rendered", args.sides, "only: nothing written")
-            return 0
-        result["box"] = {**box, "bounds": BOX_BOUNDS}
-        result["runs"]["box"] = {"date": datetime.date.today().isoformat(), "command": cmd, "machine": machine_info()}
-    if "limit" in args.parts:
-        if args.cache:
-            os.makedirs(args.cache, exist_ok=True)
-        result["limit"] = depth_limit(args.dense_size, args.limit_images, args.dense_spp, tuple(args.limit_depths),
-                                      cache=args.cache, plain_images=args.plain_images)
-        result["runs"]["limit"] = {"date": datetime.date.today().isoformat(), "command": cmd,
-                                   "machine": machine_info()}
-    if "tails" in args.parts:
-        if not args.cache:
-            p.error("--parts tails needs --cache (it reads the dense and area parts' images)")
-        t = tails(args.cache, args.path_images, args.spot_path_images, sides=tuple(args.sides))
-        if set(args.sides) != {"jaxfog", "mitsuba"}:
-            print("rendered", args.sides, "only: nothing written")
-            return 0
-        result["tails"] = t
-        result["runs"]["tails"] = {"date": datetime.date.today().isoformat(), "command": cmd,
-                                   "machine": machine_info()}
+        result[part] = res if res is None else {**res, **extra}
+        result["runs"][part] = {"date": datetime.date.today().isoformat(), "command": cmd, "machine": machine_info()}
     write_json(out_json, result)
     print(f"wrote {out_json}")
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(main())

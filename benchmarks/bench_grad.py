@@ -35,16 +35,30 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import subprocess
 import sys
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO, block_means, json_default, load, machine_info, memory_dict, subprocess_env, write_json
+from benchmarks.common import (
+    REPO,
+    block_means,
+    compile_timed,
+    format_table,
+    json_default,
+    load,
+    machine_info,
+    mean_and_se,
+    memory_dict,
+    stderr_log,
+    subprocess_env,
+    time_calls,
+    with_args,
+    write_json,
+)
 
 PARAMS = ("sigma_t", "g", "albedo")
 
@@ -139,19 +153,11 @@ def gradient_fn(scene, spp: int, options: dict, n_blocks: int):
     return jax.jit(f)
 
 
-def _compile(fn, *args):
-    t0 = time.perf_counter()
-    compiled = fn.lower(*args).compile()
-    return compiled, time.perf_counter() - t0
-
-
-def _timed(compiled, *args):
-    import jax
-
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(compiled(*args))
-    out = tuple(np.asarray(x, np.float64) for x in out)
-    return out, time.perf_counter() - t0
+def _runs(compiled, theta, n: int, key) -> dict:
+    """`time_calls` of `n` calls `compiled(theta, key(i))` (already compiled: no warm-up), each until its outputs are
+    NumPy float64 arrays on the host (kept as `values`)."""
+    return time_calls(lambda i: tuple(np.asarray(x, np.float64) for x in compiled(theta, key(i))), n, warmup=0,
+                      keep=True)
 
 
 def _key(seed: int, *path: int):
@@ -170,19 +176,13 @@ def reference_gradient(scene, cfg: Config, log=print) -> dict:
 
     fn = gradient_fn(scene, cfg.ref_chunk_spp, ESTIMATORS["detached"], cfg.blocks)
     theta = jnp.asarray(theta0(scene))
-    compiled, t_compile = _compile(fn, theta, _key(cfg.seed + 1, 0))
-    means, blocks, t_run = [], [], 0.0
-    for c in range(cfg.ref_chunks):
-        (m, b), dt = _timed(compiled, theta, _key(cfg.seed + 1, c))
-        means.append(m)
-        blocks.append(b)
-        t_run += dt
-    means, blocks = np.asarray(means), np.asarray(blocks)
-    n = cfg.ref_chunks
-    log(f"  reference: {n} x {cfg.ref_chunk_spp} spp in {t_run:.0f} s (+ {t_compile:.0f} s compile)")
-    return {"mean": means.mean(0), "mean_se": means.std(0, ddof=1) / math.sqrt(n),
-            "blocks": blocks.mean(0), "blocks_se": blocks.std(0, ddof=1) / math.sqrt(n),
-            "spp": n * cfg.ref_chunk_spp, "run_s": t_run, "compile_s": t_compile}
+    compiled, t_compile = compile_timed(fn, theta, _key(cfg.seed + 1, 0))
+    t = _runs(compiled, theta, cfg.ref_chunks, lambda c: _key(cfg.seed + 1, c))
+    (m, m_se), (b, b_se) = (mean_and_se([v[j] for v in t["values"]]) for j in (0, 1))
+    t_run = sum(t["wall_s"])
+    log(f"  reference: {cfg.ref_chunks} x {cfg.ref_chunk_spp} spp in {t_run:.0f} s (+ {t_compile:.0f} s compile)")
+    return {"mean": m, "mean_se": m_se, "blocks": b, "blocks_se": b_se, "spp": cfg.ref_chunks * cfg.ref_chunk_spp,
+            "run_s": t_run, "compile_s": t_compile}
 
 
 def error_metrics(samples_mean, samples_blocks, ref: dict) -> dict:
@@ -209,23 +209,20 @@ def measure_estimator(scene, cfg: Config, options: dict, ref: dict) -> dict:
 
     theta = jnp.asarray(theta0(scene))
     fn = gradient_fn(scene, cfg.chunk_spp, options, cfg.blocks)
-    compiled, t_compile = _compile(fn, theta, _key(cfg.seed, 0, 0))
+    compiled, t_compile = compile_timed(fn, theta, _key(cfg.seed, 0, 0))
     n_chunks = max(cfg.levels) // cfg.chunk_spp
-    sums_m = np.zeros((cfg.reps, 3))
-    sums_b = np.zeros((cfg.reps, 3, cfg.blocks, cfg.blocks))
-    t = np.zeros(cfg.reps)
     at_level = {lv: {"mean": [], "blocks": [], "time": []} for lv in cfg.levels}
-    for r in range(cfg.reps):
-        for c in range(n_chunks):
-            (m, b), dt = _timed(compiled, theta, _key(cfg.seed, r, c))
-            sums_m[r] += m
-            sums_b[r] += b
-            t[r] += dt
-            spp = (c + 1) * cfg.chunk_spp
-            if spp in at_level:
-                at_level[spp]["mean"].append(sums_m[r] / (c + 1))
-                at_level[spp]["blocks"].append(sums_b[r] / (c + 1))
-                at_level[spp]["time"].append(t[r])
+    for r in range(cfg.reps):  # run r: the running averages of its chunks and their cumulative wall time
+        t = _runs(compiled, theta, n_chunks, lambda c: _key(cfg.seed, r, c))
+        n = np.arange(1, n_chunks + 1)
+        m = np.cumsum([v[0] for v in t["values"]], axis=0) / n[:, None]
+        b = np.cumsum([v[1] for v in t["values"]], axis=0) / n[:, None, None, None]
+        for c, elapsed in enumerate(np.cumsum(t["wall_s"])):
+            if (c + 1) * cfg.chunk_spp in at_level:
+                a = at_level[(c + 1) * cfg.chunk_spp]
+                a["mean"].append(m[c])
+                a["blocks"].append(b[c])
+                a["time"].append(float(elapsed))
     levels = []
     for lv in cfg.levels:
         a = at_level[lv]
@@ -285,18 +282,13 @@ def _mode_child(mode: str, size: int, spp: int, max_depth: int, runs: int) -> di
     else:
         raise ValueError(mode)
     rss0 = max_rss_mib()
-    compiled, t_compile = _compile(fn, theta)
+    compiled, t_compile = compile_timed(fn, theta)
     rss_compiled = max_rss_mib()
-    ma = compiled.memory_analysis()
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(theta))
-        times.append(time.perf_counter() - t0)
-    xla = memory_dict(ma)
+    t = time_calls(lambda _: jax.block_until_ready(compiled(theta)), runs, warmup=0)
     rss = max_rss_mib()
-    return {"mode": mode, "compile_s": t_compile, "run_s": float(np.median(times)), "run_all_s": times,
-            "xla": xla, "rss_before_compile_mib": rss0, "rss_after_compile_mib": rss_compiled, "rss_peak_mib": rss,
+    return {"mode": mode, "compile_s": t_compile, "run_s": t["median_s"], "run_all_s": t["wall_s"],
+            "xla": memory_dict(compiled.memory_analysis()), "rss_before_compile_mib": rss0,
+            "rss_after_compile_mib": rss_compiled, "rss_peak_mib": rss,
             "rss_run_mib": rss - rss_compiled, "paths": size * size * spp}
 
 
@@ -325,15 +317,10 @@ def note_study(cfg: Config, log=print) -> dict:
     scene = load_scene("spot_fog", cfg.note_size, cfg.note_depth)
     theta = jnp.asarray(theta0(scene))
     fn = gradient_fn(scene, cfg.note_spp, ESTIMATORS["detached"], 4)
-    compiled, t_compile = _compile(fn, theta, _key(cfg.seed + 2, 0))
-    vals, t_run = [], 0.0
-    for k in range(cfg.note_keys):
-        (m, _), dt = _timed(compiled, theta, _key(cfg.seed + 2, k))
-        vals.append(m)
-        t_run += dt
-    vals = np.asarray(vals)
-    n = cfg.note_keys
-    mean, se = vals.mean(0), vals.std(0, ddof=1) / math.sqrt(n)
+    compiled, t_compile = compile_timed(fn, theta, _key(cfg.seed + 2, 0))
+    t = _runs(compiled, theta, cfg.note_keys, lambda k: _key(cfg.seed + 2, k))
+    vals, t_run, n = np.asarray([v[0] for v in t["values"]]), sum(t["wall_s"]), cfg.note_keys
+    mean, se = mean_and_se(vals)
     log(f"[note] spot_fog {cfg.note_size} x {cfg.note_size}: " + ", ".join(
         f"d/d {p} {mean[i]:.4f} +- {se[i]:.4f}" for i, p in enumerate(PARAMS)) + f" ({n} x {cfg.note_spp} spp)")
     return {"estimator": "detached", "size": cfg.note_size, "spp_per_key": cfg.note_spp, "keys": n,
@@ -367,36 +354,32 @@ def _f(x, nd=3):
 
 def format_tables(result: dict) -> str:
     lines = []
+    cfg = result["config"]
+    per_param = lambda head, key, spec: [(f"{head} {p}", lambda r, i=i: r[key][i], spec)  # noqa: E731
+                                         for i, p in enumerate(PARAMS)]
     if "error" in result:
-        cfg = result["config"]
         lines.append(f"Gradient error against time ({cfg['size']} x {cfg['size']} px, max_depth {cfg['max_depth']}, "
                      f"forward mode over (sigma_t, g, albedo); relative RMSE over {cfg['reps']} runs against a "
-                     f"detached reference; 'corr' removes the reference's own error)")
-        hdr = (f"{'scene':9s} {'estimator':26s} {'spp':>4s} {'time s':>7s} | {'mean-image rel RMSE (corr)':^33s} | "
-               f"{'block rel RMSE (corr)':^26s} | {'bias z':^20s}")
-        lines.append(hdr)
-        lines.append(f"{'':9s} {'':26s} {'':>4s} {'':>7s} | {'sigma_t':>10s} {'g':>10s} {'albedo':>10s} | "
-                     f"{'sigma_t':>8s} {'g':>8s} {'albedo':>8s} | {'sigma_t':>6s} {'g':>6s} {'albedo':>6s}")
-        for name, res in result["error"].items():
-            for est, r in res["estimators"].items():
-                for lv in r["levels"]:
-                    rc, br = lv["rel_rmse_corrected"], lv["block_rel_rmse_corrected"]
-                    lines.append(f"{name:9s} {est:26s} {lv['spp']:4d} {lv['time_s']:7.2f} | "
-                                 f"{rc[0]:10.3g} {rc[1]:10.3g} {rc[2]:10.3g} | {br[0]:8.3g} {br[1]:8.3g} {br[2]:8.3g} |"
-                                 f" {lv['bias_z'][0]:6.1f} {lv['bias_z'][1]:6.1f} {lv['bias_z'][2]:6.1f}")
+                     f"detached reference; 'corr' removes the reference's own error; RMSE: of the mean image, corr; "
+                     "block: of the block means, corr; z: bias z)")
+        rows = [{"scene": name, "estimator": est, **lv} for name, res in result["error"].items()
+                for est, r in res["estimators"].items() for lv in r["levels"]]
+        lines.append(format_table(rows, [("scene", "scene"), ("estimator", "estimator"), ("spp", "spp"),
+                                         ("time s", "time_s", ".2f"),
+                                         *per_param("RMSE", "rel_rmse_corrected", ".3g"),
+                                         *per_param("block", "block_rel_rmse_corrected", ".3g"),
+                                         *per_param("z", "bias_z", ".1f")]))
         lines.append("")
         lines.append("Time to a 10% relative RMSE of d(mean image) (s, extrapolated from the top level; compile apart)")
-        lines.append(f"{'scene':9s} {'estimator':26s} {'compile s':>9s} {'sigma_t':>9s} {'g':>9s} {'albedo':>9s}")
-        for name, res in result["error"].items():
-            for est, r in res["estimators"].items():
-                t10 = r["t10_s"]
-                lines.append(f"{name:9s} {est:26s} {r['compile_s']:9.1f} {_f(t10[0]):>9s} {_f(t10[1]):>9s} "
-                             f"{_f(t10[2]):>9s}")
+        rows = [{"scene": name, "estimator": est, **r} for name, res in result["error"].items()
+                for est, r in res["estimators"].items()]
+        lines.append(format_table(rows, [("scene", "scene"), ("estimator", "estimator"),
+                                         ("compile s", "compile_s", ".1f"), *per_param("t10", "t10_s", _f)]))
         ch = result.get("default_choice")
         if ch:
             lines.append(f"-> default for gradients: {ch['default']} (geometric mean of t10 over scenes and "
-                         f"parameters, estimators that need no reference: " + ", ".join(f"{k} {_f(v)}" for k, v in ch["scores_geomean_t10_s"].items())
-                         + ")")
+                         f"parameters, estimators that need no reference: "
+                         + ", ".join(f"{k} {_f(v)}" for k, v in ch["scores_geomean_t10_s"].items()) + ")")
         for name, res in result["error"].items():
             ref = res["reference"]
             lines.append(f"reference {name}: d(mean image)/d(sigma_t, g, albedo) = "
@@ -404,27 +387,23 @@ def format_tables(result: dict) -> str:
                          + f" ({ref['spp']} spp)")
     if "modes" in result:
         m = result["modes"]
-        cfg = result["config"]
         lines.append("")
         lines.append(f"Primal, forward and reverse mode (spot_fog {cfg['mode_size']} x {cfg['mode_size']}, "
                      f"{cfg['mode_spp']} spp, max_depth {cfg['mode_depth']}; each in a fresh process)")
-        lines.append(f"{'mode':28s} {'compile s':>9s} {'run s':>7s} {'x primal':>8s} {'XLA MiB':>8s} "
-                     f"{'RSS peak MiB':>12s} {'RSS run MiB':>11s}")
         base = m.get("primal", {}).get("run_s")
         labels = {"primal": "primal render", "forward": "jacfwd, 3 params (forward)",
                   "reverse": "grad, 3 params (reverse)"}
-        for mode, r in m.items():
-            if "error" in r:
-                lines.append(f"{labels.get(mode, mode):28s} failed")
-                continue
-            ratio = r["run_s"] / base if base else float("nan")
-            lines.append(f"{labels.get(mode, mode):28s} {r['compile_s']:9.1f} {r['run_s']:7.2f} {ratio:8.2f} "
-                         f"{r['xla']['total_mib']:8.0f} {r['rss_peak_mib']:12.0f} {r['rss_run_mib']:11.0f}")
+        rows = [{"mode": labels.get(mode, mode) + (" failed" if "error" in r else ""), **r,
+                 "x_primal": r["run_s"] / base if base and "run_s" in r else None,
+                 "xla_mib": r["xla"]["total_mib"] if "xla" in r else None} for mode, r in m.items()]
+        lines.append(format_table(rows, [
+            ("mode", "mode"), ("compile s", "compile_s", ".1f"), ("run s", "run_s", ".2f"),
+            ("x primal", "x_primal", ".2f"), ("XLA MiB", "xla_mib", ".0f"), ("RSS peak MiB", "rss_peak_mib", ".0f"),
+            ("RSS run MiB", "rss_run_mib", ".0f")]))
     if "note" in result:
         n = result["note"]
         lines.append("")
-        lines.append(f"spot_fog {n['size']} x {n['size']}, max_depth {result['config']['note_depth']}, "
-                     f"(sigma_t, g, albedo) = "
+        lines.append(f"spot_fog {n['size']} x {n['size']}, max_depth {cfg['note_depth']}, (sigma_t, g, albedo) = "
                      f"{tuple(round(float(x), 3) for x in n['theta'])}, {n['estimator']}, {n['keys']} keys x "
                      f"{n['spp_per_key']} spp:")
         lines.append("  " + ", ".join(f"d(mean pixel)/d {p} = {n['d_mean'][i]:.4f} +- {n['se'][i]:.4f}"
@@ -473,7 +452,6 @@ def run_benchmark(cfg: Config, out: Path, plots: bool = True, log=print) -> dict
         result["modes"] = mode_study(cfg, log=log)
     if "note" in cfg.parts:
         result["note"] = note_study(cfg, log=log)
-    result["machine"]["loadavg_end"] = list(os.getloadavg())
     result["total_wall_s"] = time.perf_counter() - t0
     write_json(out / "bench_grad.json", result)
     if plots and "error" in result:
@@ -499,11 +477,8 @@ def main(argv: list[str] | None = None) -> int:
         size, spp, depth, runs = json.loads(args._mode_args)
         print(json.dumps(_mode_child(args._mode, size, spp, depth, runs), default=json_default))
         return 0
-    cfg = QUICK if args.quick else FULL
-    if args.parts:
-        cfg = replace(cfg, parts=tuple(args.parts))
-    log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
-    result = run_benchmark(cfg, Path(args.out), plots=not args.no_plots, log=log)
+    cfg = with_args(QUICK if args.quick else FULL, args)
+    result = run_benchmark(cfg, Path(args.out), plots=not args.no_plots, log=stderr_log)
     print(format_tables(result))
     print(f"\nwrote {Path(args.out) / 'bench_grad.json'} in {result['total_wall_s']:.0f} s (load average "
           f"{result['machine']['loadavg_start'][0]:.1f} at start, {result['machine']['loadavg_end'][0]:.1f} at end)")

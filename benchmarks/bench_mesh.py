@@ -1,12 +1,12 @@
 """Triangle-mesh benchmark: rays/s of the BVH against brute force, and ms/spp of a mesh scene against the analytic one.
 
-    python -m benchmarks.bench_mesh                       # table on stdout, JSON in docs/results/mesh/bench_mesh.json
+    python -m benchmarks.bench_mesh                       # table on stdout, JSON in bench_out/mesh/bench_mesh.json
     python -m benchmarks.bench_mesh --counts 1000 10000   # fewer triangle counts
 
 1. Rays/s: nearest hits of `--rays` (1024) rays, `vmap`-ed once (as in a render chunk), with a bumpy torus of about
-   1k, 10k, 100k and 1M triangles (`data_synthetic/make_mesh_fog.torus_mesh`): by the BVH (`mesh_nearest`, batched
-   with lane compaction), by shadow rays of random lengths in [0.5, 5] (`mesh_occluded`, any hit), by the same walk
-   under a plain `vmap` (no compaction) and by brute force over every triangle (brute force traces fewer rays at
+   1k, 10k, 100k and 1M triangles (`data_synthetic/make_mesh_fog.torus_mesh`): by the BVH (`jaxfog.tools.mesh_nearest`,
+   batched with lane compaction), by shadow rays of random lengths in [0.5, 5] (`mesh_occluded`, any hit), by the same
+   walk under a plain `vmap` (no compaction) and by brute force over every triangle (brute force traces fewer rays at
    large counts, to bound memory and time: its cost is linear in rays). Rays start on a sphere of radius 3 around
    the torus and aim at random points of its bounding box. Also the BVH's build time and the device memory of the
    mesh's arrays. The BVH's hits are checked equal to brute force's (distances and shadow-ray answers).
@@ -23,11 +23,11 @@ import time
 
 import numpy as np
 
-from .common import REPO, load, machine_info, write_json
+from .common import REPO, command, interleave, load, out_dir, print_table, time_calls, write_json
 
 sys.path.insert(0, str(REPO / "data_synthetic"))
 
-DEFAULT_JSON = REPO / "bench_out" / "mesh" / "bench_mesh.json"
+DEFAULT_JSON = out_dir("mesh") / "bench_mesh.json"
 
 
 def _grid(n_tris: int) -> tuple[int, int]:
@@ -52,32 +52,6 @@ def uv_sphere(nu, nv, r, center):
     return n * r + np.asarray(center), np.concatenate(f)
 
 
-def _best(fn, repeats):
-    fn()  # warm-up: compile
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return min(ts)
-
-
-def _interleaved(fns: dict, repeats: int) -> dict:
-    """Best-of-`repeats` wall and process-CPU seconds of each function, timed in turn (A, B, A, B, ...) after one
-    warm-up (compile) call each, so that a change of the machine's load hits all of them alike."""
-    for fn in fns.values():
-        fn()
-    wall = {k: [] for k in fns}
-    cpu = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, fn in fns.items():
-            c0, t0 = time.process_time(), time.perf_counter()
-            fn()
-            wall[k].append(time.perf_counter() - t0)
-            cpu[k].append(time.process_time() - c0)
-    return {k: (min(wall[k]), min(cpu[k])) for k in fns}
-
-
 def _rays(v, n_rays, rng):
     """Rays from a sphere of radius 3 toward random points of the mesh's bounding box, and random shadow-ray
     lengths in [0.5, 5]."""
@@ -95,7 +69,7 @@ def rays_per_second(counts, n_rays, repeats, seed=0) -> list[dict]:
     import jax
 
     import jaxfog as jf
-    from jaxfog import _mesh
+    from jaxfog.tools import brute_force_nearest, mesh_nearest, mesh_occluded
     from make_mesh_fog import torus_mesh
 
     rng = np.random.default_rng(seed)
@@ -107,15 +81,14 @@ def rays_per_second(counts, n_rays, repeats, seed=0) -> list[dict]:
         mesh = jf.Mesh.from_arrays(v, f, jf.Diffuse(0.5))
         build = time.perf_counter() - t0
         nbytes = sum(x.nbytes for x in jax.tree.leaves(mesh) if hasattr(x, "nbytes"))
-        kw = dict(root=mesh.root, S=mesh.stack_size, box=mesh.box, n_leaves=mesh.n_leaves)
-        nearest = jax.jit(jax.vmap(lambda a, b: _mesh.mesh_nearest(mesh, a, b)))
-        shadow = jax.jit(jax.vmap(lambda a, b, c: _mesh.mesh_occluded(mesh, a, b, c)))
-        # the same walk vectorized per ray, without lane compaction (`_walk_one` under a plain vmap)
-        plain = jax.jit(jax.vmap(lambda a, b: _mesh._walk_one(mesh.rows, a, b, np.float32(np.inf), any_hit=False,
-                                                               **kw)))
-        times = _interleaved({"nearest": lambda: jax.block_until_ready(nearest(o, d)),
-                              "shadow": lambda: jax.block_until_ready(shadow(o, d, lim)),
-                              "plain": lambda: jax.block_until_ready(plain(o, d))}, repeats)
+        nearest = jax.jit(jax.vmap(lambda a, b: mesh_nearest(mesh, a, b)))
+        shadow = jax.jit(jax.vmap(lambda a, b, c: mesh_occluded(mesh, a, b, c)))
+        # the same walk vectorized per ray, without lane compaction
+        plain = jax.jit(jax.vmap(lambda a, b: mesh_nearest(mesh, a, b, compaction=False)))
+        times = interleave({"nearest": lambda _: jax.block_until_ready(nearest(o, d)),
+                            "shadow": lambda _: jax.block_until_ready(shadow(o, d, lim)),
+                            "plain": lambda _: jax.block_until_ready(plain(o, d))}, repeats)
+        times = {k: (t["min_s"], t["min_cpu_s"]) for k, t in times.items()}
         tb, sb = nearest(o, d)
         tp, sp = plain(o, d)
         assert np.array_equal(np.asarray(tb), np.asarray(tp)) and np.array_equal(np.asarray(sb), np.asarray(sp))
@@ -126,22 +99,16 @@ def rays_per_second(counts, n_rays, repeats, seed=0) -> list[dict]:
                "hit_fraction": float(np.isfinite(np.asarray(tb)).mean()),
                "shadow_blocked_fraction": float(np.asarray(shadow(o, d, lim)).mean())}
         n_bf = int(max(8, min(n_rays, 2**30 // (len(f) * 64))))  # bounded intermediates
-        bf = jax.jit(jax.vmap(lambda a, b: _mesh.brute_force_nearest(mesh, a, b)))
-        t_bf = _best(lambda: jax.block_until_ready(bf(o[:n_bf], d[:n_bf])), max(1, repeats // 2))
+        bf = jax.jit(jax.vmap(lambda a, b: brute_force_nearest(mesh, a, b)))
+        t_bf = time_calls(lambda _: jax.block_until_ready(bf(o[:n_bf], d[:n_bf])), max(1, repeats // 2))["min_s"]
         tr, _ = bf(o[:n_bf], d[:n_bf])
         assert np.array_equal(np.asarray(tr), np.asarray(tb)[:n_bf]), "BVH and brute force disagree"
         occ = np.asarray(shadow(o, d, lim))[:n_bf]
         assert np.array_equal(occ, np.asarray(tr) < np.asarray(lim)[:n_bf]), "shadow rays and brute force disagree"
         row.update(brute_rays=n_bf, brute_rays_per_s=n_bf / t_bf, speedup=row["bvh_rays_per_s"] / (n_bf / t_bf))
         rows.append(row)
-        print(_row_text(row), flush=True)
+        print(f"  {row['triangles']} triangles: {row['bvh_rays_per_s']:.4g} rays/s", flush=True)
     return rows
-
-
-def _row_text(r) -> str:
-    return (f"{r['triangles']:>9} {r['bvh_rays_per_s']:>12.4g} {r['shadow_rays_per_s']:>12.4g} "
-            f"{r['plain_vmap_rays_per_s']:>12.4g} {r['brute_rays_per_s']:>12.4g} {r['speedup']:>8.1f}x "
-            f"{r['build_s']:>8.2f} {r['mesh_bytes'] / 2**20:>9.1f} {r['stack_size']:>5}")
 
 
 def ms_per_spp(size, spp, repeats, n_tris) -> dict:
@@ -160,8 +127,9 @@ def ms_per_spp(size, spp, repeats, n_tris) -> dict:
     out = {"size": size, "spp": spp, "mesh_triangles": int(len(f)), "repeats": repeats}
     scenes = {"analytic": scene, "mesh": mesh_scene}
     key = jax.random.key(0)
-    times = _interleaved({k: (lambda s=s: jax.block_until_ready(jf.render(s, key, spp))) for k, s in scenes.items()},
-                         repeats)
+    times = interleave({k: (lambda _, s=s: jax.block_until_ready(jf.render(s, key, spp))) for k, s in scenes.items()},
+                       repeats)
+    times = {k: (t["min_s"], t["min_cpu_s"]) for k, t in times.items()}
     for name, s in scenes.items():
         img = np.asarray(jf.render(s, key, spp))
         out[f"{name}_ms_per_spp"] = 1e3 * times[name][0] / spp
@@ -188,13 +156,15 @@ def main(argv=None) -> int:
     import jaxfog as jf
 
     jf.use_cpu_cores()
-    print(f"{'triangles':>9} {'nearest/s':>12} {'shadow/s':>12} {'plain vmap/s':>12} {'brute/s':>12} {'speedup':>9} "
-          f"{'build s':>8} {'mesh MiB':>9} {'stack':>5}")
     rows = rays_per_second(args.counts, args.rays, args.repeats) if args.counts else []
+    print_table(rows, [("triangles", "triangles"), ("nearest/s", "bvh_rays_per_s", ".4g"),
+                       ("shadow/s", "shadow_rays_per_s", ".4g"), ("plain vmap/s", "plain_vmap_rays_per_s", ".4g"),
+                       ("brute/s", "brute_rays_per_s", ".4g"), ("speedup", "speedup", lambda v: f"{v:.1f}x"),
+                       ("build s", "build_s", ".2f"), ("mesh MiB", lambda r: r["mesh_bytes"] / 2**20, ".1f"),
+                       ("stack", "stack_size")])
     scene = ms_per_spp(args.size, args.spp, args.repeats, args.scene_triangles)
-    write_json(args.json, {"machine": machine_info(), "date": time.strftime("%Y-%m-%d"),
-                           "command": "python -m benchmarks.bench_mesh " + " ".join(argv or sys.argv[1:]),
-                           "rays": rows, "scene": scene})
+    write_json(args.json, {"date": time.strftime("%Y-%m-%d"), "rays": rows, "scene": scene,
+                           "command": command("python -m benchmarks.bench_mesh", argv)})
     print(f"wrote {args.json}")
     return 0
 

@@ -6,23 +6,25 @@ another (`scalar_rgb` where Dr.Jit's LLVM backend aborts, as on machines whose l
 
 Run as a program (`python -m benchmarks.bench_mitsuba SCENE.json --out X.npz`), it renders `--chunks` independent
 images of `--spp` samples each (seeds 0, 1, ...) after one warm-up render that compiles the kernels, and writes the
-images, the time of each render, the warm-up time and the process's peak resident memory to an `.npz`.
-`benchmarks.bench` runs it in a subprocess so that its memory and threads are measured apart from JAX's, and so that
-a missing or broken Mitsuba (or an LLVM backend that aborts the process) only skips the comparison.
+images, the time of each render (s), the warm-up time (s) and the process's peak resident memory (MiB) to an `.npz`.
+`run_mitsuba` runs it in a subprocess (for `benchmarks.bench` and `benchmarks.bench_cost`) so that its memory and
+threads are measured apart from JAX's, and so that a missing or broken Mitsuba (or an LLVM backend that aborts the
+process) only skips the comparison.
 """
 
 from __future__ import annotations
 
 import argparse
+import subprocess
 import sys
-import time
+from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import save_npz
-from jaxfog.tools import max_rss_mib
+from benchmarks.common import save_npz, scene_path, subprocess_env, time_calls
 from jaxfog import to_mitsuba
 from jaxfog.tools import import_mitsuba as _import_mitsuba
+from jaxfog.tools import max_rss_mib
 
 VARIANT = "llvm_ad_rgb"
 
@@ -48,23 +50,47 @@ def render_chunks(data: dict, spp: int, chunks: int, seed0: int = 0, log=None, v
     import drjit as dr
 
     scene = mi.load_dict(to_mitsuba(data, spp=spp))
-    t0 = time.perf_counter()
-    np.asarray(mi.render(scene, spp=spp, seed=10_000_019))
-    warmup = time.perf_counter() - t0
-    images, times = [], []
-    for i in range(chunks):
-        t0 = time.perf_counter()
-        img = np.asarray(mi.render(scene, spp=spp, seed=seed0 + i), dtype=np.float32)
-        times.append(time.perf_counter() - t0)
-        images.append(img[..., :3])
-        if log is not None:
-            log(f"mitsuba chunk {i + 1}/{chunks}: {spp} spp in {times[-1]:.2f} s, mean {img[..., :3].mean():.4g}")
+    t = time_calls(lambda i: np.asarray(mi.render(scene, spp=spp, seed=seed0 + i), np.float32)[..., :3], chunks,
+                   keep=True)
+    if log is not None:
+        for i, (img, s) in enumerate(zip(t["values"], t["wall_s"])):
+            log(f"mitsuba chunk {i + 1}/{chunks}: {spp} spp in {s:.2f} s, mean {img.mean():.4g}")
     try:
         threads = int(dr.thread_count())
     except Exception:  # pragma: no cover - older drjit
         threads = -1
-    return {"images": np.stack(images), "times": np.asarray(times), "warmup_s": warmup, "version": mi.__version__,
-            "variant": variant, "threads": threads}
+    return {"images": np.stack(t["values"]), "times": np.asarray(t["wall_s"]), "warmup_s": t["first_call_s"],
+            "version": mi.__version__, "variant": variant, "threads": threads}
+
+
+def run_mitsuba(name: str, size: int | None, spp: int, chunks: int, workdir: Path, python: str = sys.executable,
+                env: dict | None = None, timeout: float = 1800, seed0: int = 0, variant: str | None = None) -> dict:
+    """Renders the scene `name` (a shipped scene or a `.json` path) at `size x size` pixels (None: the file's) in
+    Mitsuba 3 in a subprocess (this module as a program): the `.npz` fields (images, times, memory; Mitsuba seeds
+    `seed0`, `seed0 + 1`, ...) as a dict, or `{"skipped": reason}` when Mitsuba (or its LLVM backend) is not
+    there or the process fails."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    out = workdir / f"mitsuba_{Path(name).stem}_{size}.npz"
+    out.unlink(missing_ok=True)
+    sets = [] if size is None else ["--set", f"camera.width={size}", "--set", f"camera.height={size}"]
+    cmd = [python, "-m", "benchmarks.bench_mitsuba", str(scene_path(name)), *sets, "--spp", str(spp), "--chunks",
+           str(chunks), "--seed", str(seed0), "--out", str(out), "--quiet"] + ([] if variant is None else
+                                                                            ["--variant", variant])
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env(env), timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"skipped": f"Mitsuba did not finish within {timeout:.0f} s"}
+    if p.returncode != 0 or not out.exists():
+        lines = [x.strip() for x in (p.stderr or "").strip().splitlines() if x.strip()]
+        reason = lines[-1] if lines else f"exit code {p.returncode}"
+        if p.returncode < 0 or p.returncode > 128:  # killed by a signal, e.g. an LLVM backend that aborts
+            first = next((x for x in lines if "error" in x.lower()), reason)
+            reason = f"Mitsuba's process died (exit code {p.returncode}): {first[:200]}"
+        return {"skipped": reason.replace("mitsuba skipped: ", "")}
+    with np.load(out) as z:
+        res = {k: z[k] for k in z.files}
+    out.unlink()
+    return res
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,38 +1,36 @@
-"""Where the forward renderer's time goes on the headline scene (issue 5).
+"""Where the forward renderer's time goes on the headline scene.
 
     python -m benchmarks.bench_profile [--quick] [--out DIR] [--scene PATH] [--spp N] [--reps N]
 
 Times `jaxfog.render(scene, key, spp)` after compiling (the first call of each configuration, compile included, is
 reported apart) for: (a) `batch_paths` (paths per compiled call); (b) `chunk_paths` (paths traced together in one
-vectorized pass; 16384 = a whole 128x128 layer at once, the renderer before issue 5); (c) feature ablations at the
+vectorized pass; 16384 = a whole 128x128 layer at once); (c) feature ablations at the
 default batch: equiangular off, light_lobe 0, distance_mix 0, all three off, max_depth 2 / 4 / 8; (d) components:
 the random numbers alone (threefry uniforms of one sample layer); (e) with every CPU core a JAX device (the
 default of the command-line tools), the same render on one device.
 
 The machine may be shared, so configurations are interleaved (A, B, C, A, B, C, ...) and medians are compared as
 ratios to the default inside one run; never compare absolute times across runs. Writes `profile.json` to `--out`
-(default `docs/results/bench/profile` in the repository) and prints a table (ms per spp = one sample of every pixel of the whole image).
+(default `bench_out/profile` in the repository) and prints a table (ms per spp = one sample of every pixel of the
+whole image).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 
 import jaxfog as jf
-from benchmarks.common import REPO, machine_info, scene_path, write_json
-from jaxfog import tools as _render
-from jaxfog.tools import n_dims, n_iterations
-from jaxfog.tools import uniforms
+from benchmarks.common import interleave, machine_info, out_dir, print_table, scene_path, write_json
+from jaxfog import tools
+from jaxfog.tools import n_dims, n_iterations, uniforms
 
 SCENE = "spot_fog"
-OUT = REPO / "bench_out" / "profile"
+OUT = out_dir("profile")
 
 
 def _configs(quick: bool):
@@ -95,62 +93,44 @@ def main(argv=None) -> int:
     cam = rows[0]["scene"].camera
     n_pix = cam.width * cam.height
 
-    # first calls: compile (+ one timed render); configurations sharing a compiled program compile once
-    t_start = time.perf_counter()
-    for r in rows:
-        t = time.perf_counter()
-        jf.render(r["scene"], key, spp, **r["kwargs"]).block_until_ready()
-        r["first_call_s"] = time.perf_counter() - t
-        r["ms_per_spp"] = []
-        print(f"  first call {r['name']:<22} {r['first_call_s']:6.1f} s", flush=True)
+    # the configurations and the random numbers alone in turn, after a first call each (compile and one render;
+    # configurations sharing a compiled program compile once)
+    fns = {r["name"]: (lambda _, r=r: jf.render(r["scene"], key, spp, **r["kwargs"]).block_until_ready()) for r in rows}
     rng = _rng_fn(rows[0]["scene"], spp)
-    rng(key).block_until_ready()
-    rng_ms = []
-
-    for rep in range(reps):
-        for r in rows:
-            t = time.perf_counter()
-            jf.render(r["scene"], key, spp, **r["kwargs"]).block_until_ready()
-            r["ms_per_spp"].append((time.perf_counter() - t) / spp * 1e3)
-        t = time.perf_counter()
-        rng(key).block_until_ready()
-        rng_ms.append((time.perf_counter() - t) / spp * 1e3)
-        print(f"  repetition {rep + 1}/{reps} done ({time.perf_counter() - t_start:.0f} s)", flush=True)
-
-    ref = statistics.median(next(r for r in rows if r["name"] == "default")["ms_per_spp"])
+    fns["random numbers only"] = lambda _: rng(key).block_until_ready()
+    times = interleave(fns, reps, log=print)
+    ms = {k: [x / spp * 1e3 for x in t["wall_s"]] for k, t in times.items()}
+    ref = statistics.median(ms["default"])
     out_rows = []
     for r in rows:
-        med = statistics.median(r["ms_per_spp"])
-        run_s = med * spp / 1e3
+        med = statistics.median(ms[r["name"]])
+        first = times[r["name"]]["first_call_s"]
         out_rows.append({
             "group": r["group"], "name": r["name"], "overrides": r["overrides"], "kwargs": r["kwargs"],
-            "layers_per_call": _render.layers_per_batch(
-                r["scene"], spp, r["kwargs"].get("batch_paths", _render.DEFAULT_BATCH_PATHS)),
-            "ms_per_spp_median": med, "ms_per_spp": r["ms_per_spp"], "paths_per_s": n_pix / (med / 1e3),
-            "ratio_to_default": med / ref, "first_call_s": r["first_call_s"],
-            "compile_s_estimate": max(0.0, r["first_call_s"] - run_s),
+            "layers_per_call": tools.layers_per_batch(
+                r["scene"], spp, r["kwargs"].get("batch_paths", tools.DEFAULT_BATCH_PATHS)),
+            "ms_per_spp_median": med, "ms_per_spp": ms[r["name"]], "paths_per_s": n_pix / (med / 1e3),
+            "ratio_to_default": med / ref, "first_call_s": first,
+            "compile_s_estimate": max(0.0, first - med * spp / 1e3),
         })
-    rng_med = statistics.median(rng_ms)
+    rng_med = statistics.median(ms["random numbers only"])
     out_rows.append({"group": "component", "name": "random numbers only", "overrides": [], "kwargs": {},
-                     "layers_per_call": spp, "ms_per_spp_median": rng_med, "ms_per_spp": rng_ms,
+                     "layers_per_call": spp, "ms_per_spp_median": rng_med, "ms_per_spp": ms["random numbers only"],
                      "paths_per_s": n_pix / (rng_med / 1e3), "ratio_to_default": rng_med / ref,
                      "first_call_s": None, "compile_s_estimate": None})
 
     print(f"\n{args.scene}: {cam.width}x{cam.height}, {spp} spp per timing, {reps} interleaved repetitions (medians)")
-    print(f"{'group':<10} {'configuration':<22} {'layers/call':>11} {'ms/spp':>8} {'Mpaths/s':>9} {'ratio':>6}"
-          f" {'first call s':>12}")
-    for o in out_rows:
-        fc = "" if o["first_call_s"] is None else f"{o['first_call_s']:.1f}"
-        print(f"{o['group']:<10} {o['name']:<22} {o['layers_per_call']:>11} {o['ms_per_spp_median']:8.1f}"
-              f" {o['paths_per_s'] / 1e6:9.3f} {o['ratio_to_default']:6.2f} {fc:>12}")
+    print_table(out_rows, [("group", "group"), ("configuration", "name"), ("layers/call", "layers_per_call"),
+                           ("ms/spp", "ms_per_spp_median", ".1f"),
+                           ("Mpaths/s", lambda o: o["paths_per_s"] / 1e6, ".3f"),
+                           ("ratio", "ratio_to_default", ".2f"), ("first call s", "first_call_s", ".1f")])
 
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     meta = {"scene": args.scene, "spp_per_timing": spp, "reps": reps, "quick": args.quick,
-            "default_batch_paths": _render.DEFAULT_BATCH_PATHS, "default_chunk_paths": _render.DEFAULT_CHUNK_PATHS,
-            "machine": {**machine, "loadavg_end": list(os.getloadavg())},
+            "default_batch_paths": tools.DEFAULT_BATCH_PATHS, "default_chunk_paths": tools.DEFAULT_CHUNK_PATHS,
+            "machine": machine,
             "note": "medians of interleaved repetitions; ratios are to the 'default' row of this run only"}
-    write_json(out / "profile.json", {"meta": meta, "rows": out_rows})
+    write_json(out / "profile.json", {"meta": meta, "rows": out_rows, "machine": machine})  # adds its loadavg_end
     print(f"wrote {out / 'profile.json'}")
     return 0
 

@@ -10,22 +10,22 @@ For the spot_fog scene at each (size, spp), the derivative of the mean image wit
   `--rounds` rounds after compilation; each round's ratio to the unbounded render, medians over rounds.
 
 Every render is one compiled call (`batch_paths` = all paths), one device. Run from the repository root:
-`python -m benchmarks.bench_replay` (writes `docs/results/unbounded/bench_replay.json` and prints the tables).
+`python -m benchmarks.bench_replay` (prints the tables and writes the JSON to `--out`, default
+`bench_out/bench_replay/bench_replay.json`).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from benchmarks.bench_grad import load_scene, theta0, with_theta
-from benchmarks.common import REPO, machine_info, memory_dict, write_json
+from benchmarks.common import command, compile_timed, interleave, memory_dict, out_dir, print_table, write_json
 
-OUT = REPO / "docs" / "results" / "unbounded" / "bench_replay.json"
+OUT = out_dir("bench_replay") / "bench_replay.json"
 
 
 def programs(size: int, spp: int, depths: list[int], forward_only: bool = False) -> dict:
@@ -63,51 +63,39 @@ def measure(size: int, spp: int, depths: list[int], rounds: int, forward_only: b
     res = {"size": size, "spp": spp, "paths": size * size * spp, "programs": {}}
     compiled = {}
     for name, fn in programs(size, spp, depths, forward_only).items():
-        t0 = time.perf_counter()
-        c = fn.lower(theta).compile()
-        t_c = time.perf_counter() - t0
-        jax.block_until_ready(c(theta))  # warm-up
-        compiled[name] = c
-        res["programs"][name] = {"compile_s": t_c, "xla": memory_dict(c.memory_analysis()), "run_s": []}
+        compiled[name], t_c = compile_timed(fn, theta)
+        res["programs"][name] = {"compile_s": t_c, "xla": memory_dict(compiled[name].memory_analysis()), "run_s": []}
         log(f"  {size}x{size} {spp} spp  {name:18s} compile {t_c:6.1f} s  temp "
             f"{res['programs'][name]['xla']['temp_mib']:8.2f} MiB")
-    timed = [n for n in compiled if n.startswith("unbounded") or n == "depth 8 grad" or n == "depth 8 render"]
-    values = {}
-    for _ in range(rounds):
-        for name in timed:
-            t0 = time.perf_counter()
-            values[name] = jax.block_until_ready(compiled[name](theta))
-            res["programs"][name]["run_s"].append(time.perf_counter() - t0)
-    base = np.array(res["programs"]["unbounded render"]["run_s"])
-    for name in timed:
-        p = res["programs"][name]
-        p["median_s"] = float(np.median(p["run_s"]))
-        p["ratio_to_unbounded_render"] = float(np.median(np.array(p["run_s"]) / base))
+    timed = ["unbounded render"] + [n for n in compiled if n.startswith("unbounded") and n != "unbounded render"
+                                    or n in ("depth 8 grad", "depth 8 render")]
+    runs = interleave({n: (lambda _, c=compiled[n]: jax.block_until_ready(c(theta))) for n in timed}, rounds,
+                      keep=True)
+    for name, t in runs.items():
+        res["programs"][name].update(run_s=t["wall_s"], median_s=t["median_s"],
+                                     ratio_to_unbounded_render=t["ratio_median"])
     if forward_only:
         return res
-    g_rev, g_fwd = np.asarray(values["unbounded grad"]), np.asarray(values["unbounded jacfwd"])
+    g_rev, g_fwd = (np.asarray(runs[n]["values"][-1]) for n in ("unbounded grad", "unbounded jacfwd"))
     res["unbounded_grad_minus_jacfwd"] = {"grad": g_rev, "jacfwd": g_fwd,
                                           "max_rel": float(np.max(np.abs(g_rev - g_fwd)) / np.max(np.abs(g_fwd)))}
     return res
 
 
-def format_tables(result: dict) -> str:
-    lines = ["| image, spp (paths) | program | XLA temp, MiB | compile, s | run, s (median) | run / unbounded render |",
-             "| --- | --- | --- | --- | --- | --- |"]
+def print_tables(result: dict) -> None:
+    """The Markdown table of every program of every run, then the check of reverse mode against forward mode."""
+    rows = [{"config": f"{r['size']}x{r['size']}, {r['spp']} ({r['paths']})", "program": name, **p}
+            for r in result["runs"] for name, p in r["programs"].items()]
+    print_table(rows, [("image, spp (paths)", "config"), ("program", "program"),
+                       ("XLA temp, MiB", lambda p: p["xla"]["temp_mib"], ".2f"), ("compile, s", "compile_s", ".1f"),
+                       ("run, s (median)", "median_s", ".3f"),
+                       ("run / unbounded render", "ratio_to_unbounded_render", ".2f")], markdown=True)
+    print()
     for r in result["runs"]:
-        for name, p in r["programs"].items():
-            run = f"{p['median_s']:.3f}" if "median_s" in p else "-"
-            ratio = f"{p['ratio_to_unbounded_render']:.2f}" if "ratio_to_unbounded_render" in p else "-"
-            lines.append(f"| {r['size']}x{r['size']}, {r['spp']} ({r['paths']}) | {name} | "
-                         f"{p['xla']['temp_mib']:.2f} | {p['compile_s']:.1f} | {run} | {ratio} |")
-    lines.append("")
-    for r in result["runs"]:
-        if "unbounded_grad_minus_jacfwd" not in r:
-            continue
-        d = r["unbounded_grad_minus_jacfwd"]
-        lines.append(f"{r['size']}x{r['size']} {r['spp']} spp: unbounded grad {np.round(d['grad'], 6).tolist()}, "
-                     f"jacfwd {np.round(d['jacfwd'], 6).tolist()}, max |diff| / max |jacfwd| = {d['max_rel']:.2e}")
-    return "\n".join(lines)
+        if "unbounded_grad_minus_jacfwd" in r:
+            d = r["unbounded_grad_minus_jacfwd"]
+            print(f"{r['size']}x{r['size']} {r['spp']} spp: unbounded grad {np.round(d['grad'], 6).tolist()}, "
+                  f"jacfwd {np.round(d['jacfwd'], 6).tolist()}, max |diff| / max |jacfwd| = {d['max_rel']:.2e}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -121,14 +109,14 @@ def main(argv: list[str] | None = None) -> int:
     import jaxfog as jf
 
     depths = [int(d) for d in args.depths.split(",")]
-    result = {"machine": machine_info(), "jaxfog": jf.__file__, "argv": sys.argv[1:] if argv is None else argv,
-              "depths": depths, "runs": []}
+    result = {"jaxfog": jf.__file__, "argv": sys.argv[1:] if argv is None else argv, "depths": depths, "runs": [],
+              "command": command("python -m benchmarks.bench_replay", argv)}
     for cfg in args.configs.split(","):
         size, spp = (int(x) for x in cfg.split("x"))
         result["runs"].append(measure(size, spp, depths, args.rounds, args.forward_only))
-    result["machine"]["loadavg_end"] = list(__import__("os").getloadavg())
     write_json(args.out, result)
-    print(format_tables(result))
+    print_tables(result)
+    print(f"wrote {args.out}")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""The cost of one path sample in the two programs that matter, and A/B comparisons of two source trees (issue 17).
+"""The cost of one path sample in the two programs that matter, and A/B comparisons of two source trees.
 
     python -m benchmarks.bench_sample [--case plain|jvp|both] [--reps N]                 # this tree, one process
     python -m benchmarks.bench_sample --ab TREE_A TREE_B [--reps N] [--case ...] [--label NAME] [--out DIR]
@@ -27,73 +27,59 @@ speed hits both sides alike. With `--xla-option`, this tree's cases are each jit
 twice, with XLA's defaults (A) and with the given compiler options (B), then interleaved the same way (XLA_FLAGS
 cannot differ inside one process; the JSON also has the largest difference of the two programs' outputs). Only
 ratios inside one run mean anything on a shared machine. Prints a table and
-writes `sample.json` (with `--ab`: `sample_ab[_LABEL].json`) to `--out` (default docs/results/bench/sample in the repository).
+writes `sample.json` (with `--ab`: `sample_ab[_LABEL].json`) to `--out` (default `bench_out/sample` in the repository).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import statistics
 import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-OUT = REPO / "bench_out" / "sample"
-SCENE = REPO / "data_synthetic" / "scenes" / "spot_fog.json"
+from benchmarks.common import compile_timed, interleave, out_dir, print_table, scene_path, time_calls, write_json
+
+OUT = out_dir("sample")
+SCENE = scene_path("spot_fog")
 TECHNIQUES = {"equiangular": False, "light_lobe": 0.0, "distance_mix": 0.0}
 """Mitsuba's techniques only: free flight, phase / BSDF sampling, one light sample per vertex."""
 CASES = ("plain", "techniques", "unbounded", "jvp", "jvp256", "call", "plaincall")
 
 
-def _build(jf, case: str):
-    """`(fn, n_paths)`: a no-argument callable that runs the case once with the package `jf` and blocks, and the
-    paths it traces."""
+def _case(jf, case: str):
+    """`(f, arg, n_paths)`: the case as a function `f(arg)` of a key (the renders) or of `(sigma_t, g)` (the fit's
+    derivative), with the package `jf`; its argument; the paths one call traces."""
     import jax
 
-    key = jax.random.key(0)
-    if case.startswith("scene:"):
-        scene = jf.load_scene(SCENE.parent / f"{case[len('scene:'):]}.json").scene
-
-        def fn():
-            jf.render(scene, key, 4).block_until_ready()
-
-        return fn, scene.camera.width * scene.camera.height * 4
-    if case == "plaincall":  # a new key for every call, as the fit draws them (`jax.random.fold_in`)
-        scene, spp = _plain_case(jf, case)
-        calls = iter(range(1 << 30))
-
-        def fn():
-            jf.render(scene, jax.random.fold_in(key, next(calls)), spp).block_until_ready()
-
-        return fn, scene.camera.width * scene.camera.height * spp
-    if case in ("plain", "techniques", "unbounded"):
-        scene, spp = _plain_case(jf, case)
-        kw = TECHNIQUES if case == "techniques" else {}
-
-        def fn():
-            jf.render(scene, key, spp, **kw).block_until_ready()
-
-        return fn, scene.camera.width * scene.camera.height * spp
     if case in ("jvp", "jvp256", "call"):
         f, y0, n_paths = _fit_render(jf, case)
-        jac = jax.jacfwd(f, has_aux=True)
+        return jax.jacfwd(f, has_aux=True), y0, n_paths
+    kw = TECHNIQUES if case == "techniques" else {}
+    if case.startswith("scene:"):
+        scene, spp = jf.load_scene(scene_path(case[len("scene:"):])).scene, 4
+    elif case in ("plain", "techniques", "plaincall"):
+        small = ["camera.width=8", "camera.height=8"] if case == "plaincall" else []
+        scene, spp = jf.load_scene(SCENE, small).scene, 1 if case == "plaincall" else 16
+    elif case == "unbounded":
+        scene, spp = jf.load_scene(SCENE, ["integrator.max_depth=-1"]).scene, 8
+    else:
+        raise ValueError(case)
+    return (lambda k: jf.render(scene, k, spp, **kw)), jax.random.key(0), scene.camera.width * scene.camera.height * spp
 
-        def fn():
-            jax.block_until_ready(jac(y0))
 
-        return fn, n_paths
-    raise ValueError(case)
+def _build(jf, case: str):
+    """`(fn, n_paths)`: a no-argument callable that runs the case once and blocks (`plaincall`: a new key for every
+    call, as the fit draws them with `jax.random.fold_in`), and the paths it traces."""
+    import jax
 
-
-def _plain_case(jf, case: str):
-    """`(scene, spp)` of a plain-render case: spot_fog at 16 spp, or with paths of any length at 8 spp."""
-    if case == "unbounded":
-        return jf.load_scene(SCENE, ["integrator.max_depth=-1"]).scene, 8
+    f, arg, n_paths = _case(jf, case)
     if case == "plaincall":
-        return jf.load_scene(SCENE, ["camera.width=8", "camera.height=8"]).scene, 1
-    return jf.load_scene(SCENE).scene, 16
+        calls = itertools.count()
+        return (lambda: jax.block_until_ready(f(jax.random.fold_in(arg, next(calls))))), n_paths
+    return (lambda: jax.block_until_ready(f(arg))), n_paths
 
 
 def _fit_render(jf, case: str):
@@ -116,20 +102,6 @@ def _fit_render(jf, case: str):
     return f, y0, scene.camera.width * scene.camera.height * spp
 
 
-def _build_jitted(jf, case: str):
-    """`(jitted, args, n_paths)`: the case as one `jax.jit`-ed function of its arguments (the render inside it), to be
-    lowered once and compiled with different XLA compiler options."""
-    import jax
-
-    key = jax.random.key(0)
-    if case in ("plain", "techniques", "unbounded", "plaincall"):
-        scene, spp = _plain_case(jf, case)
-        kw = TECHNIQUES if case == "techniques" else {}
-        return jax.jit(lambda k: jf.render(scene, k, spp, **kw)), (key,), scene.camera.width * scene.camera.height * spp
-    f, y0, n_paths = _fit_render(jf, case)
-    return jax.jit(jax.jacfwd(f, has_aux=True)), (y0,), n_paths
-
-
 def run_options(options: dict, cases, reps: int) -> dict:
     """This tree's cases, each jitted whole and compiled twice: A with XLA's defaults, B with `options`; then `reps`
     interleaved pairs (A B, B A, ...). Also the largest difference of the two programs' outputs."""
@@ -141,41 +113,28 @@ def run_options(options: dict, cases, reps: int) -> dict:
     jf.use_cpu_cores()
     out = {"devices": jax.local_device_count(), "options": options, "cases": {}}
     for c in cases:
-        fn, args, n = _build_jitted(jf, c)
-        lowered = fn.lower(*args)
+        f, arg, n = _case(jf, c)
+        fn, args = jax.jit(f), (arg,)  # the case jitted whole: one program to compile with other options
         progs, first = {}, {}
-        for tag, opts in (("A", None), ("B", options)):
-            t = time.perf_counter()
-            progs[tag] = lowered.compile(compiler_options=opts)
-            first[tag] = time.perf_counter() - t
+        for tag, opts in (("A", {}), ("B", options)):
+            progs[tag], first[tag] = compile_timed(fn, *args, **opts)
         ra, rb = (jax.block_until_ready(progs[t](*args)) for t in "AB")
         diff = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(ra), jax.tree.leaves(rb)))
-        rec = _interleaved(lambda tag: _timed(lambda: jax.block_until_ready(progs[tag](*args)), n), reps)
+        rec = _pairs({tag: (lambda _, p=progs[tag]: jax.block_until_ready(p(*args))) for tag in "AB"}, n, reps)
         out["cases"][c] = {"paths": n, "first_call_s": first, "compile_s": first, "max_abs_output_difference": diff,
-                           "us_per_path": rec, **_ratios(rec)}
+                           **rec}
     return out
 
 
-def _interleaved(run, reps: int) -> dict:
-    """`reps` pairs of `run("A")`, `run("B")` in alternating order (A B, B A, ...); each returns `(wall, cpu)` (us per
-    path). Returns `{"A": {"wall": [...], "cpu": [...]}, "B": ...}`."""
-    rec = {tag: {"wall": [], "cpu": []} for tag in "AB"}
-    for r in range(reps):
-        for tag in ("AB" if r % 2 == 0 else "BA"):
-            w, cpu = run(tag)
-            rec[tag]["wall"].append(w)
-            rec[tag]["cpu"].append(cpu)
-    return rec
-
-
-def _ratios(rec: dict) -> dict:
-    """Per measure, the pairs' ratios B / A and their median."""
-    out = {}
-    for m in ("wall", "cpu"):
-        ratios = [b / a for a, b in zip(rec["A"][m], rec["B"][m])]
-        out[f"{m}_ratio_B_over_A"] = ratios
-        out[f"{m}_ratio_median"] = statistics.median(ratios)
-    return out
+def _pairs(fns: dict, n: int, reps: int) -> dict:
+    """`reps` interleaved pairs of the compiled `fns["A"]`, `fns["B"]` (A B, B A, ...): `us_per_path` (`{"A": {"wall":
+    [...], "cpu": [...]}, "B": ...}`, microseconds per path of `n` paths) and, per measure, the pairs' ratios B / A
+    and their median."""
+    t = interleave(fns, reps, warmup=0, alternate=True)
+    us = lambda x: [v / n * 1e6 for v in x]  # noqa: E731
+    return {"us_per_path": {tag: {"wall": us(t[tag]["wall_s"]), "cpu": us(t[tag]["cpu_s"])} for tag in "AB"},
+            "wall_ratio_B_over_A": t["B"]["ratio"], "wall_ratio_median": t["B"]["ratio_median"],
+            "cpu_ratio_B_over_A": t["B"]["cpu_ratio"], "cpu_ratio_median": t["B"]["cpu_ratio_median"]}
 
 
 def _load_tree(tree: str, name: str):
@@ -190,13 +149,6 @@ def _load_tree(tree: str, name: str):
     sys.modules[name] = mod
     spec.loader.exec_module(mod)
     return mod
-
-
-def _timed(fn, n: int) -> tuple[float, float]:
-    """One call of `fn`: (wall, process CPU) microseconds per path."""
-    w, c = time.perf_counter(), time.process_time()
-    fn()
-    return (time.perf_counter() - w) / n * 1e6, (time.process_time() - c) / n * 1e6
 
 
 def run_ab(tree_a: str, tree_b: str, cases, reps: int) -> dict:
@@ -214,9 +166,7 @@ def run_ab(tree_a: str, tree_b: str, cases, reps: int) -> dict:
         try:
             for c in cases:
                 fn, n = _build(mods[tag], c)
-                t = time.perf_counter()
-                fn()
-                fns[tag, c] = (fn, n, time.perf_counter() - t)
+                fns[tag, c] = (fn, n, time_calls(lambda _: fn(), 0)["first_call_s"])
         finally:
             if saved is None:
                 sys.modules.pop("jaxfog", None)
@@ -224,9 +174,8 @@ def run_ab(tree_a: str, tree_b: str, cases, reps: int) -> dict:
                 sys.modules["jaxfog"] = saved
     out = {"devices": jax.local_device_count(), "cases": {}}
     for c in cases:
-        rec = _interleaved(lambda tag: _timed(fns[tag, c][0], fns[tag, c][1]), reps)
-        out["cases"][c] = {"paths": fns["A", c][1], "first_call_s": {t: fns[t, c][2] for t in "AB"},
-                           "us_per_path": rec, **_ratios(rec)}
+        rec = _pairs({t: (lambda _, f=fns[t, c][0]: f()) for t in "AB"}, fns["A", c][1], reps)
+        out["cases"][c] = {"paths": fns["A", c][1], "first_call_s": {t: fns[t, c][2] for t in "AB"}, **rec}
     return out
 
 
@@ -238,12 +187,10 @@ def run_here(cases, reps: int) -> list[dict]:
     out = []
     for case in cases:
         fn, n = _build(jf, case)
-        t = time.perf_counter()
-        fn()
-        first = time.perf_counter() - t
-        wall, cpu = zip(*(_timed(fn, n) for _ in range(reps)))
-        out.append({"case": case, "paths": n, "first_call_s": first, "us_per_path": list(wall),
-                    "cpu_us_per_path": list(cpu), "median_us_per_path": statistics.median(wall)})
+        t = time_calls(lambda _: fn(), reps)
+        us = [x / n * 1e6 for x in t["wall_s"]]
+        out.append({"case": case, "paths": n, "first_call_s": t["first_call_s"], "us_per_path": us,
+                    "cpu_us_per_path": [x / n * 1e6 for x in t["cpu_s"]], "median_us_per_path": statistics.median(us)})
     return out
 
 
@@ -260,22 +207,18 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON line per case only")
     args = ap.parse_args(argv)
     cases = list(CASES) if args.case == "both" else args.case.split(",")
-    from benchmarks.common import machine_info, write_json
-
     if not args.ab and not args.xla_option:
         rows = run_here(cases, args.reps)
         if args.json:
             for r in rows:
                 print(json.dumps(r))
             return 0
-        print(f"{'case':<6} {'paths':>7} {'us/path':>8} {'cpu us/path':>11} {'first call s':>12}  (medians of "
-              f"{args.reps})")
-        for r in rows:
-            print(f"{r['case']:<6} {r['paths']:7d} {r['median_us_per_path']:8.3f}"
-                  f" {statistics.median(r['cpu_us_per_path']):11.3f} {r['first_call_s']:12.1f}")
+        print(f"medians of {args.reps} calls")
+        print_table(rows, [("case", "case"), ("paths", "paths"), ("us/path", "median_us_per_path", ".3f"),
+                           ("cpu us/path", lambda r: statistics.median(r["cpu_us_per_path"]), ".3f"),
+                           ("first call s", "first_call_s", ".1f")])
         out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "sample.json", {"rows": rows, "reps": args.reps, "machine": machine_info(),
+        write_json(out / "sample.json", {"rows": rows, "reps": args.reps,
                                          "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())})
         print(f"wrote {out / 'sample.json'}")
         return 0
@@ -290,25 +233,22 @@ def main(argv=None) -> int:
         res = run_ab(args.ab[0], args.ab[1], cases, args.reps)
     print(f"A = {args.ab[0]}\nB = {args.ab[1]}\none process, {res['devices']} devices, {args.reps} interleaved "
           f"pairs per case (A B, B A, ...); us per path: medians; ratios B/A pair by pair: median [min, max]")
-    print(f"{'case':<6} {'A wall':>7} {'B wall':>7} {'B/A wall':>22} {'A cpu':>7} {'B cpu':>7} {'B/A cpu':>22}"
-          f" {'first call s A/B':>16}")
-    for c, r in res["cases"].items():
-        u = r["us_per_path"]
-        med = lambda t, m: statistics.median(u[t][m])
-        rng = lambda m: (f"{r[m + '_ratio_median']:.3f} [{min(r[m + '_ratio_B_over_A']):.3f}, "
-                         f"{max(r[m + '_ratio_B_over_A']):.3f}]")
-        print(f"{c:<6} {med('A', 'wall'):7.3f} {med('B', 'wall'):7.3f} {rng('wall'):>22} {med('A', 'cpu'):7.3f}"
-              f" {med('B', 'cpu'):7.3f} {rng('cpu'):>22} {r['first_call_s']['A']:7.1f} /{r['first_call_s']['B']:5.1f}")
+    med = lambda r, t, m: statistics.median(r["us_per_path"][t][m])  # noqa: E731
+    rng = lambda r, m: (f"{r[m + '_ratio_median']:.3f} [{min(r[m + '_ratio_B_over_A']):.3f}, "  # noqa: E731
+                        f"{max(r[m + '_ratio_B_over_A']):.3f}]")
+    print_table([{"case": c, **r} for c, r in res["cases"].items()], [
+        ("case", "case"),
+        *(c for m in ("wall", "cpu") for c in ((f"A {m}", lambda r, m=m: med(r, "A", m), ".3f"),
+                                                (f"B {m}", lambda r, m=m: med(r, "B", m), ".3f"),
+                                                (f"B/A {m}", lambda r, m=m: rng(r, m)))),
+        ("first call s A/B", lambda r: f"{r['first_call_s']['A']:.1f} / {r['first_call_s']['B']:.1f}")])
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     name = f"sample_ab{('_' + args.label) if args.label else ''}.json"
     write_json(out / name, {"label": args.label, "A": args.ab[0], "B": args.ab[1], "cases": cases,
-                            "reps": args.reps, **res, "machine": machine_info(),
-                            "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())})
+                            "reps": args.reps, **res, "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())})
     print(f"wrote {out / name}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(REPO)) if str(REPO) not in sys.path else None
     raise SystemExit(main())

@@ -1,11 +1,12 @@
-"""Mitsuba 3 cross-check of issue 14's media (chromatic `homogeneous`, two-term HG as `blendphase`, fog droplets as
+"""Mitsuba 3 cross-check of the media models (chromatic `homogeneous`, two-term HG as `blendphase`, fog droplets as
 a `tabphase` of jaxfog's own pdf): image means and 4 x 4 block means per channel, with standard errors over
 independent images on both sides.
 
-    PYTHONPATH=. python benchmarks/crosscheck_models.py [--only NAME ...] [--images N] [--spp N] [--spp-mitsuba N]
+    python benchmarks/crosscheck_models.py [--only NAME ...] [--images N] [--spp N] [--spp-mitsuba N] [--out FILE.json]
 
 Each case has its own number of images and spp per image (`CASES`); `--images`, `--spp`, `--spp-mitsuba` replace
-them for the cases run. Writes `docs/results/crosscheck_models.json`; the table is in `docs/results/fit_models.md`.
+them for the cases run. Writes the JSON to `--out` (default `bench_out/crosscheck_models/crosscheck_models.json`,
+keeping the cases not run from an earlier run); the table of a run is in `docs/results/fit_models.md`.
 Mitsuba: `scalar_rgb` (needs no LLVM). z = (jaxfog - Mitsuba) / sqrt(SE_j^2 + SE_m^2), SE = spread of the images /
 sqrt(images).
 
@@ -25,15 +26,15 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import sys
-import time
 
 import jax
 import numpy as np
 
 import jaxfog
 from jaxfog.tools import TABPHASE_SIZE, tabphase_error
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # as a script: `benchmarks` importable
 
 SIZE = ["camera.width=32", "camera.height=32"]
 DROPLET_8 = ["medium.phase.diameter=8"]
@@ -70,13 +71,6 @@ CASES = {
                                spp=8, spp_mitsuba=128, exclude=4,
                                what="droplets d = 8 um, max_depth 3, backlit, fov 40"),
 }
-
-
-def save_json(path: str, out: dict) -> None:
-    """Write `out` to `path` through a temporary file (a run stopped half-way leaves the previous file whole)."""
-    with open(path + ".tmp", "w") as f:
-        json.dump(out, f, indent=1)
-    os.replace(path + ".tmp", path)
 
 
 def render_mitsuba(path, spp, seed, over, integrator):
@@ -136,6 +130,8 @@ def stats(imgs: np.ndarray, exclude: int = 0, rings: bool = False) -> dict:
 
 
 def main(argv=None) -> int:
+    from benchmarks.common import command, machine_info, out_dir, time_calls, write_json
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--images", type=int, help="images per side (default: the case's)")
     ap.add_argument("--spp", type=int, help="jaxfog's spp per image (default: the case's)")
@@ -144,18 +140,17 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="first seed: jaxfog keys 20000 + seed + k, Mitsuba seeds "
                     "seed + k for image k (default 0)")
     ap.add_argument("--only", nargs="*")
-    ap.add_argument("--out", default="docs/results/crosscheck_models.json")
+    ap.add_argument("--out", default=str(out_dir("crosscheck_models") / "crosscheck_models.json"))
     args = ap.parse_args(argv)
     out = json.load(open(args.out)) if os.path.exists(args.out) else {}
-    out.update({"machine": f"{platform.machine()} {platform.processor()}, {os.cpu_count()} CPUs, CPU only",
-                "tabphase_size": TABPHASE_SIZE})
+    out.update({"machine": machine_info(), "tabphase_size": TABPHASE_SIZE})
     for k in ("date", "images", "spp", "spp_mitsuba", "command"):
         out.pop(k, None)  # per case now
     out.setdefault("tabphase_error", {})
     for d in (5.0, 8.0, 10.0, 20.0, 50.0):
         out["tabphase_error"][f"{d:g}"] = tabphase_error(d)
     out.setdefault("cases", {})
-    command = "PYTHONPATH=. python benchmarks/crosscheck_models.py " + " ".join(argv or sys.argv[1:])
+    cmd = command("python benchmarks/crosscheck_models.py", argv)
     for name, case in CASES.items():
         if args.only and name not in args.only:
             continue
@@ -163,15 +158,14 @@ def main(argv=None) -> int:
         n = args.images or case["images"]
         spp, spp_m = args.spp or case["spp"], args.spp_mitsuba or case["spp_mitsuba"]
         exclude, rings = case.get("exclude", 0), case.get("rings", False)
-        t0, c0 = time.perf_counter(), time.process_time()
         scene = jaxfog.load_scene(path, over).scene
-        ours = np.stack([np.asarray(jaxfog.render(scene, jax.random.key(20_000 + args.seed + k), spp), np.float64)
-                         for k in range(n)])
-        t1, c1 = time.perf_counter(), time.process_time()
         integrator = "volpathmis" if name.startswith("chromatic") else "volpath"
-        theirs = np.stack([render_mitsuba(path, spp_m, args.seed + k, over, integrator) for k in range(n)])
-        t2, c2 = time.perf_counter(), time.process_time()
-        j, m = stats(ours, exclude, rings), stats(theirs, exclude, rings)
+        # n images a side, each timed (the first jaxfog image compiles)
+        ours = time_calls(lambda k: np.asarray(jaxfog.render(scene, jax.random.key(20_000 + args.seed + k), spp),
+                                               np.float64), n, warmup=0, keep=True)
+        theirs = time_calls(lambda k: render_mitsuba(path, spp_m, args.seed + k, over, integrator), n, warmup=0,
+                            keep=True)
+        j, m = stats(np.stack(ours["values"]), exclude, rings), stats(np.stack(theirs["values"]), exclude, rings)
         z = (j["mean"] - m["mean"]) / np.sqrt(j["se"] ** 2 + m["se"] ** 2)
         se_b = np.sqrt(j["block_se"] ** 2 + m["block_se"] ** 2)
         lit = se_b > 0  # blocks that are black in both renderers (no fog seen) have no z
@@ -181,14 +175,14 @@ def main(argv=None) -> int:
                           if k not in ("block_mean", "block_se")}
         res = {"scene": path, "overrides": over, "what": what, "mitsuba_integrator": integrator,
                "images": n, "spp": spp, "spp_mitsuba": spp_m, "seed": args.seed, "excluded_centre_px": exclude,
-               "date": datetime.date.today().isoformat(), "command": command,
+               "date": datetime.date.today().isoformat(), "command": cmd,
                "jaxfog": side(j), "mitsuba": side(m),
                "rel_diff": ((j["mean"] - m["mean"]) / m["mean"]).tolist(), "z": z.tolist(),
                "blocks_max_abs_z": float(np.abs(zb).max()), "blocks_mean_z2": float((zb ** 2).mean()),
                "blocks_n": int(zb.size),
                "blocks_z_first_channel": [round(float(v), 2) if np.isfinite(v) else None for v in z_full[:, 0]],
-               "jaxfog_s": round(t1 - t0, 1), "mitsuba_s": round(t2 - t1, 1),
-               "jaxfog_cpu_s": round(c1 - c0, 1), "mitsuba_cpu_s": round(c2 - c1, 1)}
+               "jaxfog_s": round(sum(ours["wall_s"]), 1), "mitsuba_s": round(sum(theirs["wall_s"]), 1),
+               "jaxfog_cpu_s": round(sum(ours["cpu_s"]), 1), "mitsuba_cpu_s": round(sum(theirs["cpu_s"]), 1)}
         if rings:
             res["rings_z"] = [(a["mean"] - b["mean"]) / np.hypot(a["se"], b["se"])
                               for a, b in zip(j["rings"], m["rings"])]
@@ -198,7 +192,7 @@ def main(argv=None) -> int:
         out["cases"][name] = res
         keys = ("jaxfog", "mitsuba", "z", "blocks_max_abs_z", "blocks_mean_z2", "jaxfog_cpu_s", "mitsuba_cpu_s")
         print(name, json.dumps({k: res[k] for k in keys + (("rings_z",) if rings else ())}), flush=True)
-        save_json(args.out, out)
+        write_json(args.out, out)
     return 0
 
 

@@ -20,7 +20,6 @@ temporary folder and read back with `bpy.data.images.load` (outside the timing).
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import tempfile

@@ -1,6 +1,6 @@
-"""How much each view tells a fit about the droplet diameter: the Fisher information per view (issue 14).
+"""How much each view tells a fit about the droplet diameter: the Fisher information per view.
 
-    python benchmarks/droplet_information.py [--spp 256] [--keys 4] [--views ...] [--out docs/results/droplet_information.json]
+    python benchmarks/droplet_information.py [--spp 256] [--keys 4] [--views ...] [--out FILE.json]
 
 For each view of the `droplet_8um` targets (and the narrow halo view at a few fields of view), at the truth
 (d = 8 µm, sigma_t 0.3, albedo 0.9): the Jacobian of every pixel with respect to (d, sigma_t) by forward mode
@@ -16,7 +16,8 @@ the Fisher information of one channel (the fog is grey: the three channels carry
 for N = 64 samples per fit pixel (one render of the fit's, `--spp 64`), with the bias of the averaged Jacobian's own
 noise taken out (mean(j) mean(j)^T - cov(j) / keys). Reported: the standard error of d alone (sigma_t known) and
 jointly with sigma_t, as a fraction of d, the correlation of the two estimates, and the same at the target's noise
-(256 spp at 32 x 32, i.e. N = 256 f^2 per fit pixel of f x f target pixels). Prints a table, writes JSON.
+(256 spp at 32 x 32, i.e. N = 256 f^2 per fit pixel of f x f target pixels). Prints a table, writes the JSON to
+`--out` (default `bench_out/droplet_information/droplet_information.json`).
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ import os
 import sys
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # as a script: `benchmarks` importable
+from benchmarks.common import command, load, out_dir, print_table, write_json  # noqa: E402
 
 TRUTH = {"diameter": 8.0, "sigma_t": 0.3, "albedo": 0.9}
 VIEWS = {
@@ -56,7 +58,6 @@ def measure(name, scene_name, overrides, spp, keys, seed0=30_000):
     import numpy as np
 
     import jaxfog
-    from benchmarks.common import load
     from fitting.params import apply
 
     sf = load(scene_name, overrides=overrides)
@@ -128,12 +129,11 @@ def main(argv=None) -> int:
     ap.add_argument("--spp", type=int, default=256)
     ap.add_argument("--keys", type=int, default=4)
     ap.add_argument("--views", nargs="*", default=list(VIEWS))
-    ap.add_argument("--out", default="docs/results/droplet_information.json")
+    ap.add_argument("--out", default=str(out_dir("droplet_information") / "droplet_information.json"))
     args = ap.parse_args(argv)
     from jaxfog.tools import use_cpu_cores
 
     use_cpu_cores()
-    from benchmarks.common import machine_info, write_json
 
     rows = []
     for name in args.views:
@@ -143,17 +143,17 @@ def main(argv=None) -> int:
         print(json.dumps({k: r[k] for k in ("view", "mean", "dmean_dd", "dmean_dd_se", "dmean_dd_jvp_key0",
                                              "dmean_dd_fd_key0", "jvp_fd_max_abs_diff_rel", "wall_s", "cpu_s")}),
               flush=True)
-        write_json(args.out, {"command": " ".join(["python benchmarks/droplet_information.py", *(argv or sys.argv[1:])]),
-                              "machine": machine_info(), "truth": TRUTH, "rows": rows})
+        write_json(args.out, {"command": command("python benchmarks/droplet_information.py", argv), "truth": TRUTH,
+                              "rows": rows})
     print()
-    print(f"{'view':<18} {'fit px':>6} {'SE(d) alone':>11} {'SE(d) joint':>11} {'SE(s) joint':>11} {'corr':>6}"
-          f" | at the target's noise: {'SE(d) alone':>11} {'SE(d) joint':>11}")
-    for r in rows:
-        for res, x in r["by_resolution"].items():
-            a, t = x["fit_spp"], x["target"]
-            print(f"{r['view']:<18} {res:>6} {a['se_d_alone_rel']:>11.3g} {a['se_d_joint_rel']:>11.3g} "
-                  f"{a['se_sigma_joint_rel']:>11.3g} {a['corr_d_sigma']:>+6.2f} | {'':>22} "
-                  f"{t['se_d_alone_rel']:>11.3g} {t['se_d_joint_rel']:>11.3g}")
+    table = [{"view": r["view"], "res": res, **x} for r in rows for res, x in r["by_resolution"].items()]
+    print_table(table, [("view", "view"), ("fit px", "res"),
+                        *((h, lambda t, k=k: t["fit_spp"][k], ".3g") for h, k in (
+                            ("SE(d) alone", "se_d_alone_rel"), ("SE(d) joint", "se_d_joint_rel"),
+                            ("SE(s) joint", "se_sigma_joint_rel"))),
+                        ("corr", lambda t: t["fit_spp"]["corr_d_sigma"], "+.2f"),
+                        ("SE(d) alone, target's noise", lambda t: t["target"]["se_d_alone_rel"], ".3g"),
+                        ("SE(d) joint, target's noise", lambda t: t["target"]["se_d_joint_rel"], ".3g")])
     print(f"wrote {args.out}")
     return 0
 

@@ -383,3 +383,63 @@ def test_cost_run_without_mitsuba_end_to_end(tmp_path):
     assert [row["row"] for row in data["rows"]] == ["jaxfog default", "jaxfog, Mitsuba's techniques",
                                                     "jaxfog per call (8 x 8 px, 1 spp)"]
     assert all(row["median"] > 0 for row in data["rows"])
+
+
+# ------------------------------------------------------------------------------------------------------ the harness
+def test_time_calls_and_interleave_order_indices_and_ratios():
+    """`time_calls` warms up with index 0 then passes each timed call its index; `interleave` runs the labels in turn
+    (reversed every other round with `alternate`) and its ratios are per round against the first label."""
+    from benchmarks.common import interleave, time_calls
+
+    calls = []
+    t = time_calls(lambda i: calls.append(i) or 10 * i, 3, warmup=2, keep=True)
+    assert calls == [0, 0, 0, 1, 2] and t["values"] == [0, 10, 20] and len(t["wall_s"]) == len(t["cpu_s"]) == 3
+    assert t["first_call_s"] >= 0 and t["median_s"] == sorted(t["wall_s"])[1] and t["min_s"] == min(t["wall_s"])
+    assert time_calls(lambda i: None, 1, warmup=0)["first_call_s"] is None
+
+    order = []
+    r = interleave({"a": lambda i: order.append(("a", i)), "b": lambda i: order.append(("b", i))}, 3, alternate=True)
+    assert order == [("a", 0), ("b", 0), ("a", 0), ("b", 0), ("b", 1), ("a", 1), ("a", 2), ("b", 2)]
+    assert r["a"]["ratio"] == [1.0, 1.0, 1.0]
+    assert r["b"]["ratio"] == pytest.approx([b / a for a, b in zip(r["a"]["wall_s"], r["b"]["wall_s"])])
+    assert r["b"]["ratio_median"] == pytest.approx(float(np.median(r["b"]["ratio"])))
+
+
+def test_write_json_adds_the_machine_and_replaces_the_file_whole(tmp_path):
+    from benchmarks.common import write_json
+
+    path = tmp_path / "sub" / "r.json"
+    write_json(path, {"x": np.float32(1.5), "a": np.arange(3)})
+    d = json.loads(path.read_text())
+    assert d["x"] == 1.5 and d["a"] == [0, 1, 2]
+    m = d["machine"]
+    assert {"cpu", "cpu_count", "jax", "devices", "date_utc", "commit", "loadavg_start", "loadavg_end"} <= set(m)
+    write_json(path, {"machine": "kept", "y": 1})
+    assert json.loads(path.read_text()) == {"machine": "kept", "y": 1}
+    assert [p.name for p in path.parent.iterdir()] == ["r.json"]  # no temporary file left
+
+
+def test_format_table_aligns_numbers_and_marks_missing_values():
+    from benchmarks.common import format_table
+
+    rows = [{"name": "a", "t": 1.25, "flag": "2.0!"}, {"name": "longer", "t": None, "flag": "10.5"}]
+    text = format_table(rows, [("name", "name"), ("t s", "t", ".1f"), ("flag", "flag")])
+    assert text.splitlines() == ["name   t s flag", "a      1.2 2.0!", "longer   - 10.5"]
+    md = format_table(rows, [("name", "name"), ("t", lambda r: r["t"], ".2f")], markdown=True)
+    assert md.splitlines() == ["| name | t |", "| --- | --- |", "| a | 1.25 |", "| longer | - |"]
+
+
+def test_benchmarks_import_no_private_module():
+    """The benchmarks use the public `jaxfog` and `jaxfog.tools` only (no `jaxfog._x` import of any form)."""
+    import ast
+
+    for path in sorted((REPO / "benchmarks").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                mods = [node.module] + ([f"{node.module}.{a.name}" for a in node.names] if node.module == "jaxfog"
+                                        else [])
+            elif isinstance(node, ast.Import):
+                mods = [a.name for a in node.names]
+            else:
+                continue
+            assert not any(m.startswith("jaxfog._") for m in mods), (path.name, node.lineno, mods)
