@@ -1,6 +1,6 @@
 """Parameter error against fit wall time, as the fit's spp and image size change.
 
-    python -m fitting.sweep [--target mid] [--settings 16:64 16:128 ...] [--out docs/results/fit_sweep]
+    python -m fitting.sweep [--target mid] [--settings 16:64 16:128 ...] [--out DIR]
 
 Runs `python -m fitting.fit` (in this process, one fit after another) on the two shipped views of one truth
 (`spot_fog` + `spot_fog_low`) for each `DOWNSCALE:SPP` setting, from the same start (a factor 2 off in sigma_t, 0.3 off
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m fitting.sweep", description=__doc__.split("\n\n")[0])
     p.add_argument("--target", choices=sorted(START), default="mid")
     p.add_argument("--settings", nargs="+", default=list(DEFAULT_SETTINGS), metavar="DOWNSCALE:SPP")
-    p.add_argument("--out", default="docs/results/fit_sweep")
+    p.add_argument("--out", default="bench_out/fit_sweep")
     args = p.parse_args(argv)
     from jaxfog.tools import use_cpu_cores
 
