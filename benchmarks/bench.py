@@ -374,11 +374,11 @@ def xla_memory(scene, strategy: dict, paths_per_call: int) -> dict | None:
 
 
 def _source_hash() -> str:
-    """A hash of the library's private modules (the renderer's source), part of the reference cache's key."""
-    import jaxfog
+    """A hash of the library's source files (the renderer's source), part of the reference cache's key."""
+    import jaxfog as jf
 
     h = hashlib.sha256()
-    for p in sorted(Path(jaxfog.__file__).resolve().parent.glob("_*.py")):
+    for p in sorted(Path(jf.__file__).resolve().parent.glob("_*.py")):
         h.update(p.name.encode())
         h.update(p.read_bytes())
     return h.hexdigest()[:16]
