@@ -1,11 +1,11 @@
-"""jaxfog: a differentiable volumetric path tracer for homogeneous fog, in JAX.
+"""jaxfog: a differentiable volumetric path tracer for fog (homogeneous, height and density-grid media), in JAX.
 
 Public surface: scene parts (`Camera`, `Sphere`, `Rectangle`, `Mesh`, `Diffuse`, `Mirror`, `Glass`, `PointLight`,
 `SpotLight`, `AreaLight`, `DirectionalLight`, `HenyeyGreenstein`, `Rayleigh`, `TwoTermHG`, `Draine`, `Droplet`,
-`HomogeneousMedium`, `HeightFog`, `Scene`) and their interfaces
+`HomogeneousMedium`, `HeightFog`, `GridMedium`, `Scene`) and their interfaces
 (`AbstractBSDF`, `AbstractLobeBSDF`, `AbstractLight`, `AbstractPointLikeLight`, `AbstractPhaseFunction`,
 `AbstractMedium`), `render` with its `SamplingOptions`, scene files
-(`load_scene`, `SceneError`), image I/O (`write_exr`, `read_exr`, `write_png`), `check_finite(image)`, the size
+(`load_scene`, `SceneError`), density grids (`load_grid`, `read_vol`, `write_vol`, `GridFileError`), image I/O (`write_exr`, `read_exr`, `write_png`), `check_finite(image)`, the size
 limits' `LimitError`, and the same scene in Mitsuba 3 (`to_mitsuba`, and `render_mitsuba` with the optional extra
 `compare`).
 """
@@ -30,6 +30,7 @@ from ._lights import (
     PointLight as PointLight,
     SpotLight as SpotLight,
 )
+from ._grid import GridMedium as GridMedium
 from ._height import HeightFog as HeightFog
 from ._mesh import Mesh as Mesh, MeshError as MeshError, read_mesh as read_mesh, write_ply as write_ply
 from ._medium import AbstractMedium as AbstractMedium, HomogeneousMedium as HomogeneousMedium
@@ -49,5 +50,6 @@ from ._scene_io import SceneError as SceneError, load_scene as load_scene
 from ._shapes import AbstractShape as AbstractShape
 from ._shapes import Rectangle as Rectangle, Sphere as Sphere
 from ._validate import LimitError as LimitError, check_finite as check_finite
+from ._volfile import GridFileError as GridFileError, load_grid as load_grid, read_vol as read_vol, write_vol as write_vol
 
 __version__ = "0.1.0"

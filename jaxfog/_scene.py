@@ -31,7 +31,7 @@ class Scene(eqx.Module):
 
     **Fields:** `camera`; `shapes`: tuple of shapes (`Sphere`, `Rectangle`, `Mesh`: any `AbstractShape`; a glass
     one wholly inside or wholly outside the medium's `bounds`, if it has a box); `lights`: tuple of lights
-    (`PointLight`, `SpotLight`, `AreaLight`, `DirectionalLight`); `medium`: a medium (`HomogeneousMedium`, `HeightFog`) or None
+    (`PointLight`, `SpotLight`, `AreaLight`, `DirectionalLight`); `medium`: a medium (`HomogeneousMedium`, `HeightFog`, `GridMedium`) or None
     (no fog: no medium code is compiled); `max_depth`: static int >= 1, the longest path in segments from the camera
     to a light, the light-sampling segment included (docs/conventions.md; 8 is the default, 2 is single scattering),
     or -1 for paths of any length, ended by Russian roulette from the `rr_depth`-th vertex on (static int in
@@ -62,7 +62,7 @@ class Scene(eqx.Module):
             if not isinstance(light, AbstractLight):
                 raise TypeError(f"lights must be lights (PointLight, SpotLight, AreaLight, DirectionalLight), got {type(light).__name__}")
         if self.medium is not None and not isinstance(self.medium, AbstractMedium):
-            raise TypeError(f"medium must be a medium (HomogeneousMedium, HeightFog) or None, got {type(self.medium).__name__}")
+            raise TypeError(f"medium must be a medium (HomogeneousMedium, HeightFog, GridMedium) or None, got {type(self.medium).__name__}")
         self._check_glass_in_fog_box()
 
     def _check_glass_in_fog_box(self):

@@ -215,6 +215,19 @@ def _build_height(sigma_0, height_scale, base_height, albedo, g, phase, up, exte
                      up=up, extent=float(extent))
 
 
+def _build_grid(file, bounds, scale, albedo, g, phase, extent):
+    import jax.numpy as jnp
+
+    from ._grid import GridMedium
+    from ._phase import HenyeyGreenstein
+    from ._volfile import load_grid
+
+    if phase is None:
+        phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
+    grid, box = load_grid(file, bounds)  # checked (and the path resolved) by `_check_grid_file` before
+    return GridMedium(density=grid, scale=scale, albedo=albedo, phase=phase, bounds=box, extent=float(extent))
+
+
 def _min_below_max(values: dict, path: str) -> None:
     """A box's `min` corner is below its `max` corner on every axis."""
     if not all(a < b for a, b in zip(values["min"], values["max"])):
@@ -405,6 +418,19 @@ MEDIA = {
         checks=(_phase_or_g,),
         build=_build_height,
     ),
+    "grid": Section(
+        {
+            "file": Field(TEXT),
+            "bounds": Field(BOX, default=None),
+            "scale": Field(NUMBER, default=1.0, range=NON_NEGATIVE),
+            "albedo": Field(RGB, range=UNIT),
+            "g": Field(NUMBER, default=None, range=G_RANGE),
+            "phase": Field(Typed(PHASES), default=None),
+            "extent": Field(NUMBER, default=1000.0, range=POSITIVE),
+        },
+        checks=(_phase_or_g,),
+        build=_build_grid,
+    ),
 }
 """Media, selected by the medium's `"type"` (default `"homogeneous"`)."""
 
@@ -446,7 +472,7 @@ _GLASS_VALID = ("expected a glass object wholly inside or wholly outside the fog
 
 
 def _fog_box(values: dict):
-    """`(min, max)` of a bounded homogeneous medium, or None."""
+    """`(min, max)` of a medium with a box (bounded homogeneous fog, a grid), or None."""
     med = values.get("medium")
     if med is None or med.get("bounds") is None:
         return None
@@ -698,6 +724,7 @@ def scene_from_dict(data: dict, source: str = "<dict>", overrides=()) -> SceneFi
         valid = _check(data, SCHEMA, "")
     except _Invalid as e:
         raise SceneError(f"{_base(source)}: {e.path or '<top level>'}: {e.problem}; {e.valid}") from None
+    _check_grid_file(valid, source)
     _check_mesh_files(valid, source)
     stem = os.path.splitext(_base(source))[0]
     name = valid["name"] if valid["name"] is not None else stem
@@ -707,6 +734,27 @@ def scene_from_dict(data: dict, source: str = "<dict>", overrides=()) -> SceneFi
     except ValueError as e:  # a Module's own check that the schema does not repeat: still one line, the file named
         raise SceneError(f"{_base(source)}: {' '.join(str(e).split())}") from None
     return SceneFile(scene=scene, spp=valid["integrator"]["spp"], path=source, data=valid, name=name)
+
+
+def _check_grid_file(valid: dict, source: str) -> None:
+    """A grid medium's `file` resolved (relative to the scene file's folder) to an absolute path, read and validated
+    (`_volfile.load_grid`: a `SceneError` naming the scene file, the key and the grid file's problem); a `.vol`
+    file's own box becomes `medium.bounds` where the scene gives none, and glass objects are checked against it."""
+    from ._volfile import load_grid
+
+    med = valid.get("medium")
+    if med is None or med.get("type") != "grid":
+        return
+    base = os.path.dirname(os.path.abspath(source)) if source and not source.startswith("<") else os.getcwd()
+    path = os.path.normpath(med["file"] if os.path.isabs(med["file"]) else os.path.join(base, med["file"]))
+    _, (lo, hi) = load_grid(path, med["bounds"], context=f"{_base(source)}: medium.file")
+    med["file"] = path
+    if med["bounds"] is None:
+        med["bounds"] = {"min": [float(x) for x in lo], "max": [float(x) for x in hi]}
+        try:
+            _glass_inside_or_outside_fog(valid, "")
+        except _Invalid as e:
+            raise SceneError(f"{_base(source)}: {e.path or '<top level>'}: {e.problem}; {e.valid}") from None
 
 
 def _check_mesh_files(valid: dict, source: str) -> None:

@@ -1,0 +1,425 @@
+"""A density grid: fog whose extinction is a trilinearly interpolated voxel grid in a box, with exact optical depths
+and exactly inverted free flight (docs/estimators.md, "Grid media").
+
+The extinction at a point is `scale * D(p)`: `D` the trilinear interpolation of the grid's values at texel centres
+`(i + 1/2) / n` of the box (clamped at the border, zero outside the box), Mitsuba 3's `gridvolume` with
+`filter_type = "trilinear"`, `wrap_mode = "clamp"` and `to_world` mapping the unit cube onto the box.
+
+**Exact optical depth.** In grid coordinates `x = (p - box_min) / (box_max - box_min) n - 1/2` the texel centres
+are the integer planes. Between two consecutive crossings of such planes (or of the box's faces) a ray stays in
+one interpolation cell, where each of the three fractional coordinates is linear in `t` and `D` is a cubic
+polynomial in `t` (a product of three linear weights). A ray's *profile* is its at most `nx + ny + nz + 1` such
+intervals with the cubic's four coefficients on each (8 grid reads per interval); the optical depth to any `t` is
+the sum of the cubics' integrals (quartics) up to `t`. Nothing is estimated: transmittance has no variance, and
+its derivative with respect to every voxel is exact (plain automatic differentiation; the breakpoints depend on the
+ray only).
+
+**Exact free flight.** The medium branch is chosen as for the homogeneous medium (`_medium.branch_probability`
+with the optical depth `tau(s)` in place of `sigma_t s`); its distance solves `tau(t) = -log(1 - x (1 - e^-tau(s)))`:
+the interval from the cumulative depths, then the quartic by safeguarded Newton iterations (float32 precision).
+The density of a vertex is therefore known exactly (`q sigma(t) e^-tau(t) / (1 - e^-tau(s))`), which is what the
+equiangular MIS and the estimators need. For the "reparam" estimator the distance moves with the parameters by the
+implicit function theorem, `dt = (dT - d tau(t)) / sigma(t)`, written as a first-order correction of the solved
+`t` (no derivative flows through the iterations).
+
+Delta and ratio tracking (Mitsuba 3, pbrt-v4) estimate the same transmittance and distance with a majorant; here
+they are computed, at the cost of reading every cell the ray crosses (`docs/results/grid.md` measures it).
+
+RGB grids (three channels of extinction) use one-sample spectral MIS over the channels: channel `c`'s technique
+chooses the medium branch with `q_c` and samples its own distance; the branch is taken with `q = mean_c q_c`, the
+channel in proportion to `q_c` (a channel without fog on the segment has `q_c = 0`), and the vertex density is
+`mean_c q_c p_c(t)` (balance heuristic). A one-channel grid is grey (the albedo may be RGB).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._fields import concrete, rgb, scalar
+from ._medium import (
+    Q_MAX_SURFACE,
+    Q_MIN,
+    AbstractMedium,
+    FlightSample,
+    box_interval,
+    check_bounds,
+    check_phase_and_extent,
+    inside_box,
+)
+from ._phase import AbstractPhaseFunction, HenyeyGreenstein
+from ._validate import NON_NEGATIVE, UNIT, check_range
+
+SCALE_HAT_MIN = 1e-6
+"""Smallest scale a sampler uses (dimensionless): a grid of scale 0 still samples medium vertices where its density
+is non-zero, so the derivative with respect to `scale` is estimated at 0 too (as `SIGMA_HAT_MIN` does for the
+homogeneous medium)."""
+
+NEWTON_STEPS = 12
+"""Safeguarded Newton iterations that solve one cell's quartic for the free-flight distance: quadratic convergence
+from the linear guess reaches float32 precision in 3-5; the bracket's bisection (when a Newton step leaves it)
+halves the error per step."""
+
+MAX_VOXELS = 2 ** 31
+"""Most values a grid may hold (flat int32 indices)."""
+
+
+# ------------------------------------------------------------------------------------------------ pure math
+def lerp_poly(a: Float[Array, "... k"], b: Float[Array, "... k"], alpha, beta) -> Float[Array, "... k+1"]:
+    """Coefficients (lowest degree first, on the last axis) of `a(s) + (b(s) - a(s)) (alpha + beta s)`: one linear
+    interpolation step of polynomials `a`, `b` of degree k - 1 with a weight linear in `s`."""
+    diff = b - a
+    zero = jnp.zeros_like(a[..., :1])
+    return (jnp.concatenate([a + alpha * diff, zero], axis=-1)
+            + jnp.concatenate([zero, beta * diff], axis=-1))
+
+
+def poly_value(c: Float[Array, "... 4"], s) -> Float[Array, "..."]:
+    """The cubic `c0 + c1 s + c2 s^2 + c3 s^3` (Horner)."""
+    return c[..., 0] + s * (c[..., 1] + s * (c[..., 2] + s * c[..., 3]))
+
+
+def poly_integral(c: Float[Array, "... 4"], s) -> Float[Array, "..."]:
+    """`integral_0^s` of the cubic `c`: `s (c0 + s (c1 / 2 + s (c2 / 3 + s c3 / 4)))`."""
+    return s * (c[..., 0] + s * (c[..., 1] / 2.0 + s * (c[..., 2] / 3.0 + s * c[..., 3] / 4.0)))
+
+
+def solve_quartic_depth(c: Float[Array, "4"], h, target) -> Float[Array, ""]:
+    """The `s` in [0, h] with `poly_integral(c, s) = target`, for a cubic `c` that is >= 0 on [0, h] (so the
+    integral increases) and `0 <= target <= poly_integral(c, h)`: safeguarded Newton from the linear guess (a step
+    that leaves the bracket, or meets a zero density, bisects instead). Not differentiated (callers detach it)."""
+    c, h, target = jax.lax.stop_gradient((c, h, target))
+    total = poly_integral(c, h)
+    pos = total > 0
+    s0 = jnp.where(pos, h * jnp.clip(target / jnp.where(pos, total, 1.0), 0.0, 1.0), 0.0)
+
+    def step(_, carry):
+        s, lo, hi = carry
+        f = poly_integral(c, s) - target
+        lo, hi = jnp.where(f < 0, s, lo), jnp.where(f < 0, hi, s)
+        dens = poly_value(c, s)
+        ok = dens > 0
+        s_newton = s - f / jnp.where(ok, dens, 1.0)
+        inside = ok & (s_newton > lo) & (s_newton < hi)
+        return jnp.where(inside, s_newton, 0.5 * (lo + hi)), lo, hi
+
+    s, _, _ = jax.lax.fori_loop(0, NEWTON_STEPS, step, (s0, jnp.zeros_like(h), h))
+    return jnp.clip(s, 0.0, h)
+
+
+class Profile(NamedTuple):
+    """A ray's path through the grid: `start` (m,) the intervals' first distances (scene units, ascending),
+    `length` (m,) their lengths (>= 0; 0 for the unused ones), `coef` (m, C, 4) the density `D` on each interval
+    as a cubic in the distance from its start, and `cum` (m, C) the integral of `D` up to each interval's start.
+    Unscaled (the extinction is `scale * D`): one profile serves a medium and its sampler."""
+
+    start: Float[Array, " m"]
+    length: Float[Array, " m"]
+    coef: Float[Array, "m C 4"]
+    cum: Float[Array, "m C"]
+
+
+def _grid_coords(p, lo, hi, n):
+    """A point's grid coordinates (texel centres are the integers)."""
+    return (p - lo) * (n / (hi - lo)) - 0.5
+
+
+def _corner_indices(i0, n):
+    """The two clamped indices `(clip(i0, 0, n-1), clip(i0 + 1, 0, n-1))` along one axis."""
+    return jnp.clip(i0, 0, n - 1), jnp.clip(i0 + 1, 0, n - 1)
+
+
+def _cell_values(flat, res, i0):
+    """The 8 corner values `(2, 2, 2, C)` (z, y, x) of the interpolation cell with lower corner `i0` (x, y, z),
+    indices clamped to the grid."""
+    nx, ny, nz = res
+    x0, x1 = _corner_indices(i0[0], nx)
+    y0, y1 = _corner_indices(i0[1], ny)
+    z0, z1 = _corner_indices(i0[2], nz)
+    zs = jnp.stack([z0, z1])[:, None, None]
+    ys = jnp.stack([y0, y1])[None, :, None]
+    xs = jnp.stack([x0, x1])[None, None, :]
+    return flat[(zs * ny + ys) * nx + xs]
+
+
+def trilinear(flat, res, x) -> Float[Array, " C"]:
+    """`D` at the grid coordinate `x` (3,): trilinear between texel centres, clamped at the border."""
+    i0 = jnp.floor(x)
+    f = x - i0
+    v = _cell_values(flat, res, i0.astype(jnp.int32))
+    v = v[:, :, 0] + f[0] * (v[:, :, 1] - v[:, :, 0])  # along x
+    v = v[:, 0] + f[1] * (v[:, 1] - v[:, 0])  # along y
+    return v[0] + f[2] * (v[1] - v[0])  # along z
+
+
+def _lerp_linear(p0, p1, alpha, beta):
+    """`p0 + (p1 - p0) (alpha + beta s)` for polynomials given as coefficient tuples (lowest degree first):
+    one degree higher."""
+    diff = [q1 - q0 for q0, q1 in zip(p0, p1)]
+    out = [q0 + alpha * dq for q0, dq in zip(p0, diff)] + [0.0]
+    for j, dq in enumerate(diff):
+        out[j + 1] = out[j + 1] + beta * dq
+    return out
+
+
+def _cell_cubic(flat, res, g0, gd, start, length) -> Float[Array, "C 4"]:
+    """The density `D` on the interval `[start, start + length]` of the ray `g0 + t gd` (grid coordinates) as a
+    cubic in `t - start`: its cell (from the interval's midpoint, so a breakpoint's rounding cannot pick the
+    neighbour), the cell's 8 values, and the three linear interpolations (x, then y, then z) as polynomial
+    products, written out per coefficient."""
+    i0 = jnp.floor(g0 + (start + 0.5 * length) * gd).astype(jnp.int32)
+    v = _cell_values(flat, res, i0)  # (z, y, x, C)
+    alpha = g0 + start * gd - i0  # fractional coordinates at the interval's start
+    cx = [[_lerp_linear([v[z, y, 0]], [v[z, y, 1]], alpha[0], gd[0]) for y in (0, 1)] for z in (0, 1)]
+    cy = [_lerp_linear(cx[z][0], cx[z][1], alpha[1], gd[1]) for z in (0, 1)]
+    return jnp.stack(_lerp_linear(cy[0], cy[1], alpha[2], gd[2]), axis=-1)  # (C, 4)
+
+
+def _merge_sorted(lists) -> Float[Array, " m"]:
+    """The values of ascending 1-D arrays in one ascending array, without a sort: each value's position is its index
+    in its own list plus the number of values before it in the others (ties to the earlier list), then one
+    scatter. Loop-free (every ray's breakpoints in a few vectorised comparisons, and XLA may share one profile
+    between the calls that need it)."""
+    ranks = []
+    for i, x in enumerate(lists):
+        r = jnp.arange(x.shape[0])
+        for j, y in enumerate(lists):
+            if j < i:
+                r = r + jnp.sum(y[None, :] <= x[:, None], axis=1)
+            elif j > i:
+                r = r + jnp.sum(y[None, :] < x[:, None], axis=1)
+        ranks.append(r)
+    values = jnp.concatenate(lists)
+    return jnp.zeros_like(values).at[jnp.concatenate(ranks)].set(values, unique_indices=True)
+
+
+def profile(flat, res, lo, hi, o, d) -> Profile:
+    """The ray's profile through the box (module docstring): from the box's entry `max(t_in, 0)` to its exit, the
+    crossings of every texel-centre plane (per axis already in order along the ray), merged (`_merge_sorted`);
+    `nx + ny + nz + 1` intervals (static) cover every ray, the surplus ones have length 0."""
+    n = jnp.array(res, jnp.float32)
+    g0 = _grid_coords(o, lo, hi, n)
+    gd = d * (n / (hi - lo))
+    t_in, t_out = box_interval(lo, hi, o, d)
+    hit = (t_out >= jnp.maximum(t_in, 0.0)) & jnp.isfinite(t_out)  # (t_out is finite for a unit d that hits)
+    a = jnp.where(hit, jnp.maximum(t_in, 0.0), 0.0)
+    b = jnp.where(hit, t_out, 0.0)  # a ray that misses the box (or lies behind it): every interval has length 0
+    lists = [a[None], b[None]]
+    for axis, count in enumerate(res):
+        moving = gd[axis] != 0
+        k = jnp.arange(count, dtype=jnp.float32)
+        k = jnp.where(gd[axis] > 0, k, count - 1 - k)  # planes in the order the ray meets them
+        t = (k - g0[axis]) / jnp.where(moving, gd[axis], 1.0)  # double where: an axis the ray runs along has none
+        lists.insert(-1, jnp.clip(jnp.where(moving, t, b), a, b))
+    t = _merge_sorted(lists)
+    start, length = t[:-1], jnp.maximum(t[1:] - t[:-1], 0.0)
+    coef = jax.vmap(lambda s0, ln: _cell_cubic(flat, res, g0, gd, s0, ln))(start, length)  # (m, C, 4)
+    depth = jnp.maximum(poly_integral(coef, length[:, None]), 0.0)  # (m, C)
+    return Profile(start, length, coef, jnp.cumsum(depth, axis=0) - depth)
+
+
+def optical_depth(pr: Profile, scale, t) -> Float[Array, " C"]:
+    """`tau` over `[0, t]` along the profiled ray (t in [0, inf]), per channel: `scale` times the sum of each
+    interval's integral up to `t` (exact)."""
+    s = jnp.clip(t - pr.start, 0.0, pr.length)  # t = inf: the whole interval
+    return scale * jnp.sum(jnp.maximum(poly_integral(pr.coef, s[:, None]), 0.0), axis=0)
+
+
+def distance_at_depth(pr: Profile, scale, T, channel) -> Float[Array, ""]:
+    """The distance at which channel `channel`'s optical depth `scale * integral D` reaches `T` (0 <= T <=
+    tau(end); `channel` may be traced), not differentiated: the interval whose cumulative depths bracket `T`, then
+    its quartic solved (`solve_quartic_depth`)."""
+    pr, scale, T = jax.lax.stop_gradient((pr, scale, T))
+    target = T / scale
+    cum = pr.cum[:, channel]
+    k = jnp.clip(jnp.sum(cum <= target) - 1, 0, cum.shape[0] - 1)
+    return pr.start[k] + solve_quartic_depth(pr.coef[k, channel], pr.length[k], target - cum[k])
+
+
+# -------------------------------------------------------------------------------------------------- the medium
+class GridMedium(AbstractMedium):
+    """Fog whose extinction is a voxel grid in a box (`"type": "grid"` in scene files; module docstring).
+
+    **Fields:**
+    - `density`: float32 `(nz, ny, nx, C)`, `C` = 1 (grey extinction) or 3 (RGB), values >= 0 at the texel centres
+      (x fastest in memory, as Mitsuba's `.vol`); a 3-D array is taken as one channel. Any size >= 1 per axis, at
+      most 2^31 values. Static structure: its shape (a new shape compiles a new program; new values do not).
+    - `scale`: the extinction is `scale * D`, 1/scene unit per grid unit, >= 0 (the global density factor a fit
+      recovers beside the voxels).
+    - `albedo`: single-scattering albedo, RGB in [0, 1].
+    - `phase`: the phase function.
+    - `bounds`: `(box_min, box_max)` in scene units, required: the grid's box (outside it there is no fog).
+    - `extent`: static; as `HomogeneousMedium` (rays leave the box long before it).
+    """
+
+    density: Float[Array, "nz ny nx C"]
+    scale: Float[Array, ""] = eqx.field(converter=scalar)
+    albedo: Float[Array, "3"] = eqx.field(converter=rgb)
+    phase: AbstractPhaseFunction
+    bounds: tuple[Float[Array, "3"], Float[Array, "3"]]
+    extent: float = eqx.field(static=True, default=1000.0)
+
+    def __init__(self, density, scale, albedo, phase, bounds, extent=1000.0):
+        density = jnp.asarray(density, jnp.float32)
+        if density.ndim == 3:
+            density = density[..., None]
+        if density.ndim != 4 or density.shape[-1] not in (1, 3) or min(density.shape[:3]) < 1:
+            raise ValueError(f"GridMedium.density must have shape (nz, ny, nx) or (nz, ny, nx, C) with C = 1 or 3 "
+                             f"and every size >= 1, got {tuple(density.shape)}")
+        if int(np.prod(density.shape)) > MAX_VOXELS:
+            raise ValueError(f"GridMedium.density holds {int(np.prod(density.shape))} values; at most {MAX_VOXELS}")
+        self.density = density
+        self.scale = scale
+        self.albedo = albedo
+        self.phase = phase
+        self.bounds = check_bounds("GridMedium", bounds)
+        self.extent = extent
+
+    def __check_init__(self):
+        v = concrete(self.density)
+        if v is not None:
+            bad = ~np.isfinite(v) | (v < 0)
+            if bad.any():
+                first = tuple(int(i) for i in np.argwhere(bad)[0])
+                raise ValueError(f"GridMedium.density must be finite and >= 0: {int(bad.sum())} values are not, the "
+                                 f"first at (z, y, x, c) = {first}: {float(v[first])!r}")
+        check_range("GridMedium", "scale", self.scale, NON_NEGATIVE)
+        check_range("GridMedium", "albedo", self.albedo, UNIT)
+        check_phase_and_extent("GridMedium", self.phase, self.extent)
+
+    # ---------------------------------------------------------------------------------------------- structure
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        """`(nx, ny, nz)`, static."""
+        nz, ny, nx, _ = self.density.shape
+        return nx, ny, nz
+
+    @property
+    def channels(self) -> int:
+        """1 (grey) or 3 (RGB), static."""
+        return self.density.shape[-1]
+
+    @property
+    def g(self) -> Float[Array, ""]:
+        """The Henyey–Greenstein `g` of the phase function (AttributeError for other phase functions)."""
+        if not isinstance(self.phase, HenyeyGreenstein):
+            raise AttributeError(f"the medium's phase function is {type(self.phase).__name__}, which has no g")
+        return self.phase.g
+
+    def _flat(self):
+        return self.density.reshape(-1, self.channels)
+
+    def _sampling_scale(self):
+        return jnp.maximum(self.scale, SCALE_HAT_MIN)
+
+    def profile(self, o, d) -> Profile:
+        """The ray's `Profile` through this grid."""
+        return profile(self._flat(), self.resolution, self.bounds[0], self.bounds[1], o, d)
+
+    def density_at(self, p) -> Float[Array, " C"]:
+        """`D(p)` (unscaled), per channel; 0 outside the box."""
+        lo, hi = self.bounds
+        x = _grid_coords(p, lo, hi, jnp.array(self.resolution, jnp.float32))
+        return jnp.where(inside_box(lo, hi, p), trilinear(self._flat(), self.resolution, x), 0.0)
+
+    def extinction(self, p) -> Float[Array, "3"]:
+        """`sigma_t(p) = scale D(p)`, RGB, 1/scene unit."""
+        return jnp.broadcast_to(self.scale * self.density_at(p), (3,))
+
+    def scattering(self, p):
+        return self.albedo * self.extinction(p)
+
+    def fog_interval(self, o, d, s):
+        t0, t1 = box_interval(self.bounds[0], self.bounds[1], o, d)
+        return jnp.clip(t0, 0.0, s), jnp.clip(t1, 0.0, s)
+
+    def optical_depth(self, o, d, t) -> Float[Array, " C"]:
+        """`tau` over `[0, t]` per channel (t may be inf)."""
+        return optical_depth(self.profile(o, d), self.scale, t)
+
+    # ---------------------------------------------------------------------------------------------- free flight
+    def _branches(self, o, d, s, q_max):
+        """The sampler's per-channel branch probabilities: `(pr, tau_hat(s), q_c, log(1 - q_c))`, no derivative in
+        the q's; a channel without fog on the segment has `q_c = 0`."""
+        sh = self._sampling_scale()
+        pr = self.profile(o, d)
+        tau_s = optical_depth(pr, sh, s)
+        m = -jnp.expm1(-jax.lax.stop_gradient(tau_s))
+        some = tau_s > 0
+        q = jnp.where(some, jnp.clip(m, Q_MIN, q_max), 0.0)
+        exact = (m >= Q_MIN) & (m <= q_max)
+        log1mq = jnp.where(exact, -jax.lax.stop_gradient(tau_s), jnp.log1p(-q))
+        return pr, tau_s, q, log1mq
+
+    def sample_free_flight(self, o, d, s, ends_on_surface, active, u, u_channel) -> FlightSample:
+        q_max = jnp.where(ends_on_surface, Q_MAX_SURFACE, 1.0)
+        pr, tau_s, q_c, log1mq_c = self._branches(o, d, s, q_max)
+        q = jnp.mean(q_c)
+        log1mq = jnp.log(jnp.mean(jnp.exp(log1mq_c)))
+        q = jnp.where(active, q, 0.0)
+        scattered = active & (u < q)
+        # the channel in proportion to q_c (one channel: always it); then its distance, exactly inverted
+        share = jnp.cumsum(q_c) / jnp.where(q > 0, jnp.sum(q_c), 1.0)
+        c = jnp.minimum(jnp.sum(share <= u_channel), self.channels - 1)
+        x = jnp.where(scattered, jnp.minimum(u / jnp.where(scattered, q, 1.0), 0.99999994), 0.0)
+        tau_c = tau_s[c]
+        T = -jnp.log1p(-x * -jnp.expm1(-tau_c))  # the depth to reach: differentiable (reparam)
+        sh = self._sampling_scale()
+        t0 = distance_at_depth(pr, sh, T, c)
+        # implicit function theorem: tau_c(t) = T moves t by (dT - d tau_c(t)) / sigma_c(t); zero for a detached sampler
+        tau_t = optical_depth(pr, sh, t0)[c]
+        sig = jax.lax.stop_gradient(sh * self.density_at(o + t0 * d)[c])
+        ok = sig > 0
+        dt = ((T - jax.lax.stop_gradient(T)) - (tau_t - jax.lax.stop_gradient(tau_t))) / jnp.where(ok, sig, 1.0)
+        t = t0 + jnp.where(ok & scattered, dt, 0.0)
+        # a segment through the box's empty part: the surface is reached with weight exactly its transmittance (1)
+        log1mq = jnp.where(active & (q > 0), log1mq, 0.0)
+        return FlightSample(jnp.clip(t, 0.0, s), scattered, q, log1mq)
+
+    def _log_vertex_densities(self, o, d, s, t):
+        """Per channel: `log(sigma_hat_c(t) e^-tau_hat_c(t) / m_c)` (the truncated free-flight density, 1/scene unit,
+        -inf where it is 0) and the branch probabilities, from the sampler's values."""
+        pr, tau_s, q_c, _ = self._branches(o, d, s, 1.0)
+        sh = self._sampling_scale()
+        sig = sh * self.density_at(o + t * d)
+        tau_t = optical_depth(pr, sh, t)
+        m = -jnp.expm1(-tau_s)
+        ok = (sig > 0) & (m > 0)
+        log_p = jnp.where(ok, jnp.log(jnp.where(ok, sig, 1.0)) - tau_t - jnp.log(jnp.where(ok, m, 1.0)), -jnp.inf)
+        return log_p, sig, tau_t, m, q_c
+
+    def free_flight_pdf(self, o, d, s, q, t):
+        """`mean_c q_c p_c(t)` scaled to the branch probability `q` the caller passes (`q / mean_c q_c` is 1 for the
+        sampled branch, and the equiangular mixture passes 1 for the distance density alone)."""
+        log_p, _, _, _, q_c = self._log_vertex_densities(o, d, s, t)
+        qm = jnp.mean(q_c)
+        w = q_c / jnp.where(qm > 0, qm, 1.0)
+        return q * jnp.mean(jnp.where(log_p > -jnp.inf, w * jnp.exp(jnp.minimum(log_p, 80.0)), 0.0))
+
+    def collision_weight(self, sampler, o, d, s, q, t):
+        """`sigma_s(t) T(t) / sampler.free_flight_pdf(t)`, RGB; for a grey grid as the ratio `albedo (sigma /
+        sigma_hat) e^-(tau - tau_hat) m / q`, which never underflows."""
+        sigma = self.scale * self.density_at(o + t * d)
+        tau = self.optical_depth(o, d, t)
+        if self.channels == 1 and sampler.channels == 1:
+            _, sig_h, tau_h, m, _ = sampler._log_vertex_densities(o, d, s, t)
+            ok = sig_h > 0
+            ratio = jnp.where(ok, sigma / jnp.where(ok, sig_h, 1.0), 0.0)
+            w = ratio * jnp.exp(jnp.minimum(-(tau - tau_h), 80.0)) * (m / q)
+            return self.albedo * w[0]
+        pdf = sampler.free_flight_pdf(o, d, s, q, t)
+        val = jnp.broadcast_to(sigma * jnp.exp(-tau), (3,))
+        ok = pdf > 0
+        return self.albedo * jnp.where(ok, val / jnp.where(ok, pdf, 1.0), 0.0)
+
+    def surface_weight(self, o, d, s, log_one_minus_q):
+        tau = jnp.broadcast_to(self.optical_depth(o, d, s), (3,))
+        return jnp.exp(jnp.minimum(-tau - log_one_minus_q, 80.0))
+
+    def transmittance(self, o, d, t):
+        return jnp.broadcast_to(jnp.exp(-self.optical_depth(o, d, t)), (3,))

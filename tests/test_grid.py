@@ -1,0 +1,336 @@
+"""The density-grid medium (`GridMedium`): its trilinear lookup against numpy, its exact optical depth against
+quadrature, its free-flight distances against the distribution they must follow (chi-square), derivatives with
+respect to single voxels against finite differences, finite values and gradients on hard cases, scene files, and
+renders against the homogeneous medium it must equal when constant (and against Mitsuba 3 in the slow tier)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfog as jf
+from jaxfog._grid import GridMedium, distance_at_depth, profile
+from jaxfog._medium import HomogeneousMedium
+
+REPO = Path(__file__).resolve().parent.parent
+BOX = ((-1.0, -1.0, -1.0), (1.0, 2.0, 1.5))
+
+
+def _medium(grid, scale=0.7, box=BOX, g=0.3):
+    return GridMedium(grid, scale, 0.8, jf.HenyeyGreenstein(g), bounds=box)
+
+
+def _grid(shape=(4, 5, 6, 1), seed=0, lo=0.0, hi=2.0):
+    return np.random.default_rng(seed).uniform(lo, hi, shape).astype(np.float32)
+
+
+def _numpy_trilinear(grid, box, p):
+    """Reference: Mitsuba's gridvolume lookup in float64 (texel centres at (i + 1/2) / n, clamped, 0 outside)."""
+    lo, hi = (np.asarray(b, np.float64) for b in box)
+    if np.any(p < lo) or np.any(p > hi):
+        return np.zeros(grid.shape[-1])
+    nz, ny, nx, _ = grid.shape
+    x = (p - lo) / (hi - lo) * np.array([nx, ny, nz]) - 0.5
+    i0 = np.floor(x).astype(int)
+    f = x - i0
+    out = 0.0
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                w = (f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1]) * (f[2] if dz else 1 - f[2])
+                ix, iy, iz = (np.clip(i0[k] + dd, 0, n - 1) for k, dd, n in ((0, dx, nx), (1, dy, ny), (2, dz, nz)))
+                out = out + w * grid[iz, iy, ix].astype(np.float64)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------- lookups
+def test_trilinear_lookup_matches_numpy_inside_at_the_border_and_outside():
+    grid = _grid()
+    med = _medium(grid)
+    rng = np.random.default_rng(1)
+    pts = np.concatenate([rng.uniform([-1.2, -1.2, -1.2], [1.2, 2.2, 1.7], (200, 3)),
+                          np.array([[-1, -1, -1], [1, 2, 1.5], [0.999, 0.0, 0.0], [-0.99, 1.99, 1.49]])])
+    got = np.asarray(jax.jit(jax.vmap(med.density_at))(jnp.asarray(pts, jnp.float32)))
+    want = np.stack([_numpy_trilinear(grid, BOX, p) for p in pts])
+    # float32 coordinates: |error| ~ 1e-6 relative in the position times the gradient (values <= 2 over a texel)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=2e-5)
+
+
+# ------------------------------------------------------------------------------------------- optical depth
+RAYS = [  # (origin, direction): through the box, starting inside, along an axis, grazing, missing, backwards
+    ((-2.0, 0.3, 0.2), (1.0, 0.2, 0.1)),
+    ((0.1, 0.5, 0.3), (-0.3, 0.8, -0.5)),
+    ((-3.0, 0.25, 0.4), (1.0, 0.0, 0.0)),
+    ((0.2, -3.0, -0.7), (0.0, 1.0, 0.0)),
+    ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)),
+    ((3.0, 3.0, 3.0), (1.0, 0.0, 0.0)),
+    ((2.0, 0.5, 0.5), (1.0, 0.1, 0.0)),
+]
+
+
+def _quadrature(med, o, d, t_ends, n=8001, t_max=10.0):
+    """The trapezoid rule on `n` points over `[0, t_max]`, read at each of `t_ends`, and its error bound: at each
+    of the (at most two) jumps where the ray crosses the box's faces the rule errs by at most jump x step / 2;
+    elsewhere the piecewise cubic's error (step^2 t max|D''| / 12 ~ 1e-7) is negligible."""
+    ts = np.linspace(0.0, t_max, n)
+    vals = np.asarray(jax.jit(jax.vmap(lambda t: med.extinction(o + t * d)))(jnp.asarray(ts, jnp.float32)))[:, 0]
+    step = ts[1] - ts[0]
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (vals[1:] + vals[:-1]) * step)])
+    err = float(np.max(np.abs(np.diff(vals)), initial=0.0)) * step + 1e-6
+    return [float(np.interp(min(t, t_max), ts, cum)) for t in t_ends], err
+
+
+@pytest.mark.parametrize("o, d", RAYS)
+def test_optical_depth_is_the_integral_of_the_extinction(o, d):
+    med = _medium(_grid())
+    o = jnp.asarray(o, jnp.float32)
+    d = jnp.asarray(d, jnp.float32) / np.linalg.norm(d)
+    ts = (0.4, 1.3, 2.6, 8.0, jnp.inf)  # grid points of the quadrature (step 1/800), and the whole ray
+    wants, err = _quadrature(med, o, d, ts)
+    depth = jax.jit(lambda o_, d_, t_: med.optical_depth(o_, d_, t_))
+    for t, want in zip(ts, wants):
+        got = float(depth(o, d, jnp.float32(t))[0])
+        # the quadrature's own error bound, plus float32 in the sum of ~25 interval integrals (~1e-6 relative)
+        assert abs(got - want) <= err + 2e-5 * abs(want), (t, got, want, err)
+    assert np.allclose(med.transmittance(o, d, 2.0), np.exp(-float(med.optical_depth(o, d, 2.0)[0])))
+
+
+def test_a_constant_grid_is_beer_lambert_in_its_box():
+    med = _medium(np.full((3, 4, 2), 2.0, np.float32), scale=0.25, box=((-1, -1, -1), (1, 1, 1)))
+    o, d = jnp.array([-3.0, 0.1, 0.2]), jnp.array([1.0, 0.0, 0.0])
+    depth = jax.jit(lambda o_, d_, t_: med.optical_depth(o_, d_, t_))
+    assert float(depth(o, d, jnp.inf)[0]) == pytest.approx(0.5 * 2.0, rel=1e-6)
+    assert float(depth(o, d, jnp.float32(2.5))[0]) == pytest.approx(0.5 * 0.5, rel=1e-6)
+    assert float(depth(o, d, jnp.float32(1.0))[0]) == 0.0
+
+
+def test_distance_at_depth_inverts_the_optical_depth():
+    med = _medium(_grid(seed=3))
+    o, d = jnp.array([-2.0, 0.3, 0.2]), jnp.array([0.97, 0.2, 0.1]) / np.linalg.norm([0.97, 0.2, 0.1])
+    pr = med.profile(o, d)
+    total = float(med.optical_depth(o, d, jnp.inf)[0])
+    invert, depth = jax.jit(lambda T: distance_at_depth(pr, med.scale, T, 0)), jax.jit(lambda o_, d_, t_: med.optical_depth(o_, d_, t_))
+    for frac in (1e-4, 0.1, 0.5, 0.9, 0.9999):
+        T = jnp.float32(frac * total)
+        t = invert(T)
+        assert float(depth(o, d, t)[0]) == pytest.approx(float(T), rel=2e-5, abs=1e-6)
+
+
+def test_optical_depth_derivative_per_voxel_matches_finite_differences():
+    grid = _grid(seed=4)
+    o, d = jnp.array([-2.0, 0.3, 0.2]), jnp.array([0.97, 0.2, 0.1]) / np.linalg.norm([0.97, 0.2, 0.1])
+    f = jax.jit(lambda D: _medium(D).optical_depth(o, d, 2.2)[0])
+    g = np.asarray(jax.grad(f)(jnp.asarray(grid)))
+    assert np.count_nonzero(g) > 4
+    # the optical depth is linear in each voxel: the central difference is exact up to float32 rounding of f (~1e-7
+    # of tau ~ 1, divided by 2h)
+    h = 0.05
+    for idx in [tuple(i) for i in np.argwhere(g != 0)[:6]] + [(0, 0, 0, 0)]:
+        e = np.zeros_like(grid)
+        e[idx] = h
+        fd = (float(f(grid + e)) - float(f(grid - e))) / (2 * h)
+        assert g[idx] == pytest.approx(fd, abs=3e-5), idx
+
+
+# --------------------------------------------------------------------------------------------- free flight
+def test_free_flight_distances_follow_the_exact_distribution():
+    """Chi-square of 20,000 sampled distances in 20 bins of equal probability under the exact truncated density
+    `sigma(t) e^-tau(t) / (1 - e^-tau(s))` (its CDF from the exact optical depth): the test fails with probability
+    0.1% when the sampler is right (chi-square, 19 degrees of freedom, 99.9% quantile 43.8)."""
+    med = _medium(_grid(seed=5))
+    o, d = jnp.array([-2.0, 0.3, 0.2]), jnp.array([0.97, 0.2, 0.1]) / np.linalg.norm([0.97, 0.2, 0.1])
+    s = jnp.float32(3.5)
+    u = jax.random.uniform(jax.random.key(11), (20000,))  # ~16,000 medium vertices, ~800 per bin
+    fl = jax.jit(jax.vmap(lambda ui: med.sample_free_flight(o, d, s, False, True, ui, 0.5)))(u)
+    scattered = np.asarray(fl.scattered)
+    tau_s = float(med.optical_depth(o, d, s)[0])
+    q = 1.0 - math.exp(-tau_s)
+    assert float(fl.q[0]) == pytest.approx(q, rel=1e-5)
+    t = np.asarray(fl.t)[scattered]
+    depth = jax.jit(jax.vmap(lambda x: med.optical_depth(o, d, x)[0]))
+    cdf = (1.0 - np.exp(-np.asarray(depth(jnp.asarray(t))))) / q
+    counts = np.histogram(cdf, bins=20, range=(0.0, 1.0))[0]
+    expected = len(t) / 20
+    chi2 = float(np.sum((counts - expected) ** 2 / expected))
+    assert chi2 < 43.8, chi2
+    # the branch: Binomial(20000, q), 4 standard errors
+    assert abs(scattered.mean() - q) < 4 * math.sqrt(q * (1 - q) / len(u))
+
+
+def test_free_flight_pdf_is_the_density_of_the_samples():
+    med = _medium(_grid(seed=6))
+    o, d = jnp.array([-2.0, 0.3, 0.2]), jnp.array([0.97, 0.2, 0.1]) / np.linalg.norm([0.97, 0.2, 0.1])
+    s = 3.5
+    ts = np.linspace(0.0, s, 4001)
+    pdf = np.asarray(jax.jit(jax.vmap(lambda t: med.free_flight_pdf(o, d, s, 1.0, t)))(jnp.asarray(ts, jnp.float32)))
+    # the distance density given the medium branch integrates to 1; the trapezoid rule errs by at most
+    # jump x step / 2 at each of the two box faces the segment crosses
+    bound = float(np.max(np.abs(np.diff(pdf)))) * (ts[1] - ts[0]) + 1e-5
+    assert abs(np.trapezoid(pdf, ts) - 1.0) <= bound
+
+
+def test_reparam_distance_moves_with_the_voxels_by_the_implicit_function_theorem():
+    grid = _grid(seed=7)
+    o, d = jnp.array([-2.0, 0.3, 0.2]), jnp.array([0.97, 0.2, 0.1]) / np.linalg.norm([0.97, 0.2, 0.1])
+    # the branch probability carries no derivative (it is detached, as for every medium, and the collision weight's
+    # m / q compensates); a segment ending on a surface with optical depth > log 4 has it capped at Q_MAX_SURFACE,
+    # where a finite difference does not move it either: the distance is then the same function of the voxels
+    f = jax.jit(lambda D: _medium(D, scale=1.5).sample_free_flight(o, d, 3.5, True, True, 0.4, 0.5).t)
+    assert float(_medium(grid, scale=1.5).sample_free_flight(o, d, 3.5, True, True, 0.4, 0.5).q) == 0.75
+    g = np.asarray(jax.grad(f)(jnp.asarray(grid)))
+    h = 0.01
+    for idx in [tuple(i) for i in np.argwhere(np.abs(g) > 1e-3)[:5]]:
+        e = np.zeros_like(grid)
+        e[idx] = h
+        fd = (float(f(grid + e)) - float(f(grid - e))) / (2 * h)
+        # t is smooth in each voxel; the central difference's error is O(h^2 t''') ~ 1e-5, float32 t ~ 3e-7 / 2h
+        assert g[idx] == pytest.approx(fd, rel=2e-2, abs=1e-4), idx
+
+
+# ------------------------------------------------------------------------------------------------ hard cases
+def _hard_case_sum(one):
+    """A jitted function of `(scale, grid)`: the sum of `one(medium, o, d)` over `RAYS` (compiled once per grid
+    shape)."""
+    o = jnp.asarray([r[0] for r in RAYS], jnp.float32)
+    d = jnp.asarray([np.asarray(r[1]) / np.linalg.norm(r[1]) for r in RAYS], jnp.float32)
+
+    @jax.jit
+    def f(sc, D):
+        med = GridMedium(D, sc, 0.8, jf.HenyeyGreenstein(0.3), bounds=BOX)
+        return jnp.sum(jax.vmap(lambda a, b: one(med, a, b))(o, d))
+
+    return f
+
+
+def _every_method(med, o, d):
+    fl = med.sample_free_flight(o, d, 3.0, False, True, 0.3, 0.5)
+    q = jnp.where(fl.scattered, fl.q, 1.0)
+    return (jnp.sum(med.transmittance(o, d, jnp.inf)) + jnp.sum(med.surface_weight(o, d, 3.0, fl.log_one_minus_q))
+            + jnp.sum(med.collision_weight(med, o, d, 3.0, q, fl.t)) + med.free_flight_pdf(o, d, 3.0, q, fl.t)
+            + fl.t)
+
+
+HARD_CASES = _hard_case_sum(_every_method)
+
+
+@pytest.mark.parametrize("grid", [_grid(seed=8), np.zeros((4, 5, 6, 1), np.float32),
+                                  np.full((1, 1, 1, 1), 3.0, np.float32)], ids=["random", "zero", "one_voxel"])
+def test_values_and_gradients_are_finite_on_hard_cases(grid):
+    """Every method of the medium, with its gradient with respect to `scale` and every voxel, on rays through the
+    box, from inside it, along axes, through a corner, missing it and leaving it; at scale 0, 0.7 and 1e4."""
+    for scale in (0.0, 0.7, 1e4):
+        v, grads = jax.value_and_grad(HARD_CASES, argnums=(0, 1))(jnp.float32(scale), jnp.asarray(grid))
+        assert np.isfinite(float(v)), scale
+        assert all(np.all(np.isfinite(np.asarray(x))) for x in grads), scale
+
+
+def test_profile_of_a_ray_that_misses_the_box_is_empty():
+    grid = _grid()
+    pr = profile(jnp.asarray(grid).reshape(-1, 1), (6, 5, 4), jnp.array(BOX[0]), jnp.array(BOX[1]),
+                 jnp.array([5.0, 5.0, 5.0]), jnp.array([1.0, 0.0, 0.0]))
+    assert float(jnp.sum(pr.length)) == 0.0
+
+
+def test_bad_grids_are_refused_when_built():
+    with pytest.raises(ValueError, match="density must be finite and >= 0: 1 values"):
+        _medium(np.array([[[1.0, -1.0]]], np.float32))
+    with pytest.raises(ValueError, match=r"C = 1 or 3"):
+        _medium(np.ones((2, 2, 2, 2), np.float32))
+    with pytest.raises(ValueError, match="scale"):
+        _medium(_grid(), scale=-1.0)
+    with pytest.raises(ValueError, match="bounds"):
+        _medium(_grid(), box=((0, 0, 0), (0, 1, 1)))
+
+
+# ---------------------------------------------------------------------------------------------- scene files
+def test_the_shipped_grid_scene_loads_with_the_file_box(tmp_path):
+    sf = jf.load_scene(REPO / "data_synthetic" / "scenes" / "grid_fog.json")
+    assert isinstance(sf.scene.medium, GridMedium)
+    assert sf.scene.medium.resolution == (16, 16, 16)
+    assert sf.data["medium"]["bounds"] == {"min": [-2.0, -0.5, -2.0], "max": [2.0, 2.5, 1.5]}
+
+
+@pytest.mark.parametrize("medium, message", [
+    ({"file": "nowhere.vol"}, "medium.file: .*not found"),
+    ({"file": "g.npy"}, "medium.file: .*bounds"),
+    ({"file": "g.vol", "scale": -1}, "medium.scale"),
+])
+def test_bad_grid_media_in_scene_files_are_refused(tmp_path, medium, message):
+    np.save(tmp_path / "g.npy", np.ones((2, 2, 2), np.float32))
+    jf.write_vol(tmp_path / "g.vol", np.ones((2, 2, 2), np.float32), ((0, 0, 0), (1, 1, 1)))
+    data = json.loads((REPO / "data_synthetic" / "scenes" / "grid_fog.json").read_text())
+    data["medium"] = {"type": "grid", "albedo": 0.9, "g": 0.5, **medium}
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(jf.SceneError, match=message):
+        jf.load_scene(path)
+
+
+# ---------------------------------------------------------------------------------------------------- renders
+def _with_medium(scene, med):
+    return eqx.tree_at(lambda s: s.medium, scene, med)
+
+
+def test_a_constant_grid_renders_like_the_homogeneous_medium_in_its_box():
+    """Independent keys; the two image means agree within 3 standard errors of their difference (each from the
+    renders' own per-pixel variances)."""
+    scene = jf.load_scene(REPO / "data_synthetic" / "scenes" / "spot_fog.json",
+                          ["camera.width=8", "camera.height=8", "integrator.max_depth=3"]).scene
+    box = ((-2.0, -0.5, -2.0), (2.0, 2.5, 1.5))
+    hom = HomogeneousMedium(0.5, 0.9, scene.medium.phase, bounds=box)
+    grid = GridMedium(np.full((3, 3, 3), 2.0, np.float32), 0.25, 0.9, scene.medium.phase, bounds=box)
+    means, ses = [], []
+    for med, key in ((hom, 1), (grid, 2)):
+        img, var = jf.render(_with_medium(scene, med), jax.random.key(key), 64, variance=True)
+        img, var = np.asarray(img), np.asarray(var)
+        means.append(img.mean())
+        ses.append(math.sqrt(var.sum()) / img.size)
+    assert abs(means[0] - means[1]) < 3 * math.hypot(*ses), (means, ses)
+
+
+@pytest.mark.slow  # reverse mode through a render: ~1 min of compilation on 2 cores
+def test_voxel_gradients_of_a_render_match_finite_differences():
+    """`jax.grad` of an image's mean with respect to every voxel of a 3^3 grid, against central differences of the
+    same estimator ("proposal": for a fixed key the image is a smooth function of the voxels). Tolerance: the
+    difference's truncation error O(h^2) and float32 rounding of the mean (~1e-7 / 2h)."""
+    scene = jf.load_scene(REPO / "data_synthetic" / "scenes" / "spot_fog.json",
+                          ["camera.width=6", "camera.height=6", "integrator.max_depth=3"]).scene
+    box = ((-2.0, -0.5, -2.0), (2.0, 2.5, 1.5))
+    D0 = np.random.default_rng(0).uniform(0.2, 1.0, (3, 3, 3, 1)).astype(np.float32)
+    prop = GridMedium(D0, 0.6, 0.9, scene.medium.phase, bounds=box)
+
+    def f(D):
+        med = GridMedium(D, 0.6, 0.9, scene.medium.phase, bounds=box)
+        return jnp.mean(jf.render(_with_medium(scene, med), jax.random.key(3), 16, estimator="proposal",
+                                  proposal=prop))
+
+    g = np.asarray(jax.grad(f)(jnp.asarray(D0)))
+    assert np.all(np.isfinite(g))
+    h = 0.02
+    for idx in [(1, 1, 1, 0), (2, 0, 0, 0), (0, 2, 1, 0)]:
+        e = np.zeros_like(D0)
+        e[idx] = h
+        fd = (float(f(D0 + e)) - float(f(D0 - e))) / (2 * h)
+        assert g[idx] == pytest.approx(fd, rel=0.02, abs=2e-6), idx
+
+
+@pytest.mark.slow  # Mitsuba 3 at 4 x 4096 spp and jaxfog at 512 spp: a few minutes on 2 cores
+def test_the_patchy_grid_agrees_with_mitsuba():
+    """The shipped patchy grid (16^3) at 16 x 16 px, max_depth 3: the image means agree within 2% plus 3 standard
+    errors of the difference (jaxfog's from its per-pixel variances, Mitsuba's from four independent renders)."""
+    pytest.importorskip("mitsuba")
+    scene = REPO / "data_synthetic" / "scenes" / "grid_fog.json"
+    ov = ["camera.width=16", "camera.height=16", "integrator.max_depth=3"]
+    means = [jf.render_mitsuba(scene, spp=4096, seed=s, overrides=ov).mean() for s in range(4)]
+    mi_mean, mi_se = float(np.mean(means)), float(np.std(means, ddof=1)) / 2.0
+    img, var = jf.render(jf.load_scene(scene, ov).scene, jax.random.key(5), 512, variance=True)
+    img, var = np.asarray(img), np.asarray(var)
+    se = math.hypot(math.sqrt(var.sum()) / img.size, mi_se)
+    assert abs(img.mean() - mi_mean) < 0.02 * mi_mean + 3 * se, (img.mean(), mi_mean, se)
