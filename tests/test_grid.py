@@ -278,6 +278,7 @@ def _with_medium(scene, med):
     return eqx.tree_at(lambda s: s.medium, scene, med)
 
 
+@pytest.mark.slow  # two render programs compiled (~30 s on 2 cores): the default run keeps the unit tests above
 def test_a_constant_grid_renders_like_the_homogeneous_medium_in_its_box():
     """Independent keys; the two image means agree within 3 standard errors of their difference (each from the
     renders' own per-pixel variances)."""
