@@ -13,6 +13,7 @@
 | `sigma_0` | height fog: extinction at the base height, 1/scene unit, all channels | `log sigma_0` |
 | `height_scale` | height fog: scale height H, scene units | `log H` |
 | `base_height` | height fog: base height h_0, scene units (degenerate with sigma_0) | `h_0` |
+| `scale` | grid fog: the factor on the grid's values (the extinction is `scale * D`), all voxels | `log scale` |
 | `exposure` | the camera's factor on the scene's radiance, every target (photographs: `fitting.photo`) | `log` |
 | `exposure[r]`, `exposure[g]`, `exposure[b]` | one channel's factor, every target (`exposure:rgb`: white balance) | `log` |
 | `exposure@1` ... `exposure@8` | the factor of one target only (targets counted from 1, as given) | `log` |
@@ -191,6 +192,8 @@ SPECS = {
     # exponential height fog (jaxfog.HeightFog); sigma_0 and base_height enter only as sigma_0 exp(h_0 / H)
     "sigma_0": medium_param("sigma_0", LOG, 0.0, np.inf, "1/unit", search="extinction"),
     "height_scale": medium_param("height_scale", LOG, 0.0, np.inf, "unit", search="length"),
+    # a density grid (jaxfog.GridMedium): its global factor; the voxels themselves are fitted by fitting.grid
+    "scale": medium_param("scale", LOG, 0.0, np.inf, "", search="power"),
     "base_height": medium_param("base_height", Transform(lambda x: x, lambda u: u, np.ones_like), -np.inf, np.inf,
                                 "unit", search="offset"),
 }

@@ -1,0 +1,270 @@
+"""Fit every voxel of a density grid to images from several views (a `GridMedium` scene per view).
+
+    python -m fitting.grid SCENE1.json TARGET1.exr [SCENE2.json TARGET2.exr ...] --out OUT \\
+        [--iterations 200] [--spp 8] [--downscale F] [--start 0.3] [--seed 0] [--smooth auto | WEIGHT]
+
+Every scene holds the same grid medium (shape and box; the first scene's grid is only its shape: the fit starts
+from a constant grid, `--start` 1/scene unit, or the mean extinction the first view's brightness suggests).
+The parameters are the voxels' logarithms (`D = exp(theta)`: positive, and a relative step in a thin voxel is as
+easy as in a dense one). Each iteration renders every view twice with independent keys and takes the gradient of
+`sum_px stop_gradient(I_a - T) I_b / var` through the second render (reverse mode through the tracer: the
+two-key gradient, unbiased where the squared residual of one render is not) plus a smoothness prior
+`weight * sum (theta_i - theta_j)^2` over neighbouring voxels; Adam (step 0.05 in log-density) moves `theta`.
+
+The prior's weight is chosen by the data (`--smooth auto`, the discrepancy principle): the fit's chi^2 per pixel
+(the residual's mean square over the render noise plus the target's pixel-to-pixel noise) is compared with 1 every
+10 iterations; below it the fit is reading noise and the weight grows 2x, above 2 it is too smooth to explain the
+images and the weight halves. Per-voxel standard errors: the Gauss-Newton information's diagonal,
+`diag(J^T W J)`, estimated by Hutchinson's method from random-sign vector-Jacobian products, plus the prior's.
+
+Writes `OUT/RESULT_density.vol` (the fitted grid, in the units of the scenes' grid: with their `scale` it
+renders the fitted fog), `OUT/RESULT_density_se.vol` (its standard error, same units),
+`OUT/RESULT.json` (per iteration: loss, chi^2, weight, seconds; the volume error when the scenes' grid is the
+truth, `--truth`) and `OUT/slices.png` (the middle slices of the fit, its standard error and the truth).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxfog
+from jaxfog.tools import atomic_write
+
+STEP = 0.05
+"""Adam's step in log-density per iteration (a voxel can change by 5% per step; 100 steps span e^5)."""
+
+BETAS = (0.9, 0.999)
+"""Adam's moment decays."""
+
+SMOOTH_START = 1.0
+"""The prior's starting weight with `--smooth auto`, relative to the data term's scale (both are sums of squares in
+units of the noise); the discrepancy principle then moves it by factors of 2."""
+
+
+# ------------------------------------------------------------------------------------------------ the views
+def load_views(pairs, downscale: int | None):
+    """`[(scene, target (H, W, 3), var (H, W, 3)), ...]`: each scene at the fit's resolution, its target box-pooled
+    to it and the target's pixel variance from its 2x2 blocks' spread (a render's noise)."""
+    views = []
+    shape = None
+    for scene_path, target_path in pairs:
+        sf = jaxfog.load_scene(scene_path)
+        med = sf.scene.medium
+        if not isinstance(med, jaxfog.GridMedium):
+            raise ValueError(f"{scene_path}: the medium is {type(med).__name__}; fitting.grid fits a grid medium")
+        if shape is None:
+            shape = (med.density.shape, np.asarray(med.bounds[0]).tolist(), np.asarray(med.bounds[1]).tolist())
+        elif (med.density.shape, np.asarray(med.bounds[0]).tolist(), np.asarray(med.bounds[1]).tolist()) != shape:
+            raise ValueError(f"{scene_path}: its grid (shape and box) differs from the first view's")
+        target, _ = jaxfog.read_exr(target_path)
+        H, W = target.shape[:2]
+        f = downscale or max(1, min(H, W) // 16)
+        if H % f or W % f:
+            raise ValueError(f"{target_path}: {W} x {H} px is not divisible by --downscale {f}")
+        small = target.reshape(H // f, f, W // f, f, 3).mean((1, 3))
+        sf = jaxfog.load_scene(scene_path, [f"camera.width={W // f}", f"camera.height={H // f}"])
+        spread = target.reshape(H // f, f, W // f, f, 3).var((1, 3), ddof=1) / (f * f) if f > 1 else None
+        var = spread if spread is not None else np.full_like(small, max(float(small.var()) * 1e-4, 1e-12))
+        views.append((sf.scene, jnp.asarray(small), jnp.asarray(var)))
+    return views
+
+
+def neighbour_penalty(theta):
+    """`sum (theta_i - theta_j)^2` over the grid's face neighbours (z, y, x)."""
+    return sum(jnp.sum(jnp.diff(theta, axis=a) ** 2) for a in range(3))
+
+
+def with_density(scene, theta):
+    """The scene with the grid's extinction `exp(theta)` (1/scene unit: the values with scale 1)."""
+    return eqx.tree_at(lambda s: (s.medium.density, s.medium.scale), scene,
+                       (jnp.exp(theta)[..., None].astype(jnp.float32), jnp.float32(1.0)))
+
+
+# ------------------------------------------------------------------------------------------------- one step
+def make_step(views, spp: int):
+    """The jitted `(theta, weight, key) -> (loss, chi2, grad)` of the two-key data term plus the prior."""
+
+    def data(theta, key):
+        loss, chi2 = 0.0, 0.0
+        for i, (scene, target, var) in enumerate(views):
+            ka, kb = jax.random.split(jax.random.fold_in(key, i))
+            sc = with_density(scene, theta)
+            img_a, var_a = jaxfog.render(sc, ka, spp, variance=True)
+            img_b = jaxfog.render(sc, kb, spp)
+            noise = jax.lax.stop_gradient(var + var_a)
+            floor = 1e-3 * jnp.mean(noise) + 1e-12
+            w = 1.0 / (noise + floor)
+            resid = jax.lax.stop_gradient(img_a - target)
+            loss = loss + jnp.sum(resid * img_b * w)  # gradient: sum r w dI_b (the two-key estimate)
+            chi2 = chi2 + jnp.mean(resid ** 2 * w)
+        return loss, chi2 / len(views)
+
+    @jax.jit
+    def step(theta, weight, key):
+        (loss, chi2), g = jax.value_and_grad(data, has_aux=True)(theta, key)
+        prior, g_prior = jax.value_and_grad(neighbour_penalty)(theta)
+        return loss + weight * prior, chi2, g + weight * g_prior
+
+    return step
+
+
+def hutchinson_diagonal(views, theta, spp: int, key, probes: int = 8):
+    """`diag(J^T W J)` of the data term at `theta` (per voxel), from `probes` random-sign vector-Jacobian products:
+    `E[(J^T W^(1/2) z)^2] = diag(J^T W J)` for `z` of independent +-1 entries."""
+    diag = jnp.zeros_like(theta)
+    for p in range(probes):
+        for i, (scene, target, var) in enumerate(views):
+            k = jax.random.fold_in(jax.random.fold_in(key, p), i)
+            z = jnp.where(jax.random.bernoulli(jax.random.fold_in(k, 1), shape=target.shape), 1.0, -1.0)
+            w_sqrt = 1.0 / jnp.sqrt(var + 1e-3 * jnp.mean(var) + 1e-12)
+            f = lambda th: jnp.sum(jaxfog.render(with_density(scene, th), k, spp) * w_sqrt * z)  # noqa: B023,E731
+            diag = diag + jax.grad(f)(theta) ** 2
+    return diag / probes
+
+
+# --------------------------------------------------------------------------------------------------- the fit
+def fit_grid(views, *, iterations: int, spp: int, start: float, seed: int, smooth, truth=None, log=print):
+    """Adam on the log-density (module docstring). Returns `(density, se, history)`: the fitted grid `(nz, ny,
+    nx)`, its per-voxel standard error (same units) and the per-iteration records."""
+    shape = views[0][0].medium.density.shape[:3]
+    theta = jnp.full(shape, math.log(start), jnp.float32)
+    m, v = jnp.zeros_like(theta), jnp.zeros_like(theta)
+    weight = SMOOTH_START if smooth == "auto" else float(smooth)
+    step = make_step(views, spp)
+    key = jax.random.key(seed)
+    history, t0 = [], time.perf_counter()
+    for it in range(1, iterations + 1):
+        loss, chi2, g = step(theta, jnp.float32(weight), jax.random.fold_in(key, it))
+        m = BETAS[0] * m + (1 - BETAS[0]) * g
+        v = BETAS[1] * v + (1 - BETAS[1]) * g * g
+        m_hat, v_hat = m / (1 - BETAS[0] ** it), v / (1 - BETAS[1] ** it)
+        theta = theta - STEP * m_hat / (jnp.sqrt(v_hat) + 1e-8)
+        rec = {"iteration": it, "loss": float(loss), "chi2": float(chi2), "weight": weight,
+               "seconds": time.perf_counter() - t0}
+        if truth is not None:
+            rec["volume_error"] = float(np.linalg.norm(np.exp(np.asarray(theta)) - truth) / np.linalg.norm(truth))
+        history.append(rec)
+        if it % 10 == 0:
+            if smooth == "auto":
+                weight = weight * 2.0 if chi2 < 1.0 else weight / 2.0 if chi2 > 2.0 else weight
+            log(f"  iteration {it}: chi2/px {float(chi2):.3f}, prior weight {weight:.3g}, "
+                + (f"volume error {rec['volume_error']:.3f}, " if truth is not None else "")
+                + f"{rec['seconds']:.0f} s")
+    density = np.exp(np.asarray(theta))
+    info = np.asarray(hutchinson_diagonal(views, theta, spp, jax.random.fold_in(key, 10 ** 6)))
+    prior_diag = 2.0 * weight * sum(_neighbour_count(shape, a) for a in range(3))
+    se_theta = 1.0 / np.sqrt(np.maximum(info, 0.0) + prior_diag)
+    return density, density * se_theta, history
+
+
+def _neighbour_count(shape, axis):
+    """Per voxel: how many neighbours it has along `axis` (1 at the ends, 2 inside, 0 for a single layer)."""
+    n = shape[axis]
+    c = np.full(n, 2.0) if n > 1 else np.zeros(1)
+    if n > 1:
+        c[0] = c[-1] = 1.0
+    view = [1, 1, 1]
+    view[axis] = n
+    return np.broadcast_to(c.reshape(view), shape)
+
+
+def write_slices(path, fit, se, truth) -> None:
+    """The middle z, y and x slices of the fit, its standard error and (when known) the truth, as one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [("fit", fit), ("standard error", se)] + ([("truth", truth)] if truth is not None else [])
+    fig, axes = plt.subplots(len(rows), 3, figsize=(9, 3 * len(rows)), squeeze=False)
+    vmax = float(max(np.max(fit), np.max(truth) if truth is not None else 0.0))
+    for r, (name, g) in enumerate(rows):
+        mids = [g[g.shape[0] // 2], g[:, g.shape[1] // 2], g[:, :, g.shape[2] // 2]]
+        for c, (sl, axis) in enumerate(zip(mids, ("z", "y", "x"))):
+            im = axes[r][c].imshow(sl, origin="lower", vmin=0, vmax=vmax if name != "standard error" else None)
+            axes[r][c].set_title(f"{name}, middle {axis} slice", fontsize=9)
+            fig.colorbar(im, ax=axes[r][c], fraction=0.046)
+    fig.tight_layout()
+    tmp = f"{path}.tmp.png"
+    fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------------------------- command line
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m fitting.grid", description=__doc__.split("\n\n")[0])
+    ap.add_argument("inputs", nargs="+", help="SCENE.json TARGET.exr [SCENE2.json TARGET2.exr ...]")
+    ap.add_argument("--out", required=True, help="output folder")
+    ap.add_argument("--iterations", type=int, default=200)
+    ap.add_argument("--spp", type=int, default=8, help="samples per pixel of each render (two per view a step)")
+    ap.add_argument("--downscale", type=int, default=None, help="fit at 1/F of the targets' size (default: 16 px)")
+    ap.add_argument("--start", type=float, default=0.3, help="the starting grid's constant value, 1/scene unit")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--smooth", default="auto", help="the prior's weight, or 'auto' (discrepancy principle)")
+    ap.add_argument("--truth", action="store_true", help="report the volume error against the scenes' own grid")
+    return ap
+
+
+def check_args(args) -> list[tuple[str, str]]:
+    """Refuse bad arguments before any work: pairs of existing files, positive counts, a usable weight."""
+    if len(args.inputs) % 2:
+        raise ValueError("inputs: expected pairs SCENE.json TARGET.exr")
+    pairs = list(zip(args.inputs[::2], args.inputs[1::2]))
+    for s, t in pairs:
+        for p in (s, t):
+            if not os.path.isfile(p):
+                raise ValueError(f"{p}: not found")
+    if args.iterations < 1 or args.spp < 1:
+        raise ValueError("--iterations and --spp must be >= 1")
+    if not (args.start > 0 and math.isfinite(args.start)):
+        raise ValueError(f"--start {args.start}: expected a finite value > 0 (1/scene unit)")
+    if args.smooth != "auto":
+        try:
+            w = float(args.smooth)
+        except ValueError:
+            raise ValueError(f"--smooth {args.smooth!r}: expected 'auto' or a number >= 0") from None
+        if not (w >= 0 and math.isfinite(w)):
+            raise ValueError(f"--smooth {args.smooth!r}: expected 'auto' or a number >= 0")
+    return pairs
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        pairs = check_args(args)
+        views = load_views(pairs, args.downscale)
+    except (ValueError, jaxfog.SceneError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    truth = np.asarray(views[0][0].medium.density)[..., 0] * float(views[0][0].medium.scale) if args.truth else None
+    print(f"fitting a {'x'.join(map(str, truth.shape if truth is not None else views[0][0].medium.density.shape[:3]))}"
+          f" grid to {len(views)} view(s), {args.iterations} iterations")
+    density, se, history = fit_grid(views, iterations=args.iterations, spp=args.spp, start=args.start,
+                                    seed=args.seed, smooth=args.smooth, truth=truth)
+    os.makedirs(args.out, exist_ok=True)
+    lo, hi = (np.asarray(b) for b in views[0][0].medium.bounds)
+    scale = float(views[0][0].medium.scale)
+    jaxfog.write_vol(os.path.join(args.out, "RESULT_density.vol"), density / max(scale, 1e-30), (lo, hi))
+    jaxfog.write_vol(os.path.join(args.out, "RESULT_density_se.vol"), se / max(scale, 1e-30), (lo, hi))
+    text = json.dumps({"views": pairs, "history": history}, indent=1)
+    atomic_write(os.path.join(args.out, "RESULT.json"), lambda tmp: open(tmp, "w").write(text))
+    write_slices(os.path.join(args.out, "slices.png"), density, se, truth)
+    last = history[-1]
+    print(f"done: chi2/px {last['chi2']:.3f}" + (f", volume error {last['volume_error']:.3f}" if truth is not None
+                                                  else "") + f"; wrote {args.out}/RESULT_density.vol")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
