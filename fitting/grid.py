@@ -12,9 +12,10 @@ two-key gradient, unbiased where the squared residual of one render is not) plus
 `weight * sum (theta_i - theta_j)^2` over neighbouring voxels; Adam (step 0.05 in log-density) moves `theta`.
 
 The prior's weight is chosen by the data (`--smooth auto`, the discrepancy principle): the fit's chi^2 per pixel
-(the residual's mean square over the render noise plus the target's pixel-to-pixel noise) is compared with 1 every
-10 iterations; below it the fit is reading noise and the weight grows 2x, above 2 it is too smooth to explain the
-images and the weight halves. Per-voxel standard errors: the Gauss-Newton information's diagonal,
+(the residual's mean square over the render noise plus the target's pixel-to-pixel noise), averaged over 20
+iterations, is compared with 1 from a third of the iterations on; below it the fit is reading noise and the weight
+grows 2x, above 2 it is too smooth to explain the images and the weight halves. Adam's step decays linearly to a
+fifth over the iterations. Per-voxel standard errors: the Gauss-Newton information's diagonal,
 `diag(J^T W J)`, estimated by Hutchinson's method from random-sign vector-Jacobian products, plus the prior's.
 
 Writes `OUT/RESULT_density.vol` (the fitted grid, in the units of the scenes' grid: with their `scale` it
@@ -45,6 +46,10 @@ STEP = 0.05
 
 BETAS = (0.9, 0.999)
 """Adam's moment decays."""
+
+WINDOW = 20
+"""Iterations over which the chi^2 is averaged before the discrepancy principle compares it with 1 (one
+iteration's chi^2 from a few spp is noisy)."""
 
 SMOOTH_START = 1.0
 """The prior's starting weight with `--smooth auto`, relative to the data term's scale (both are sums of squares in
@@ -92,43 +97,53 @@ def with_density(scene, theta):
 
 # ------------------------------------------------------------------------------------------------- one step
 def make_step(views, spp: int):
-    """The jitted `(theta, weight, key) -> (loss, chi2, grad)` of the two-key data term plus the prior."""
+    """`(theta, weight, key) -> (loss, chi2, grad)`: the two-key data term of every view plus the prior. One
+    compiled program per view shape (the views are its arguments, not constants: four views of one size compile
+    once)."""
 
-    def data(theta, key):
-        loss, chi2 = 0.0, 0.0
-        for i, (scene, target, var) in enumerate(views):
-            ka, kb = jax.random.split(jax.random.fold_in(key, i))
-            sc = with_density(scene, theta)
+    @eqx.filter_jit
+    def one_view(theta, scene, target, var, key):
+        def data(th):
+            ka, kb = jax.random.split(key)
+            sc = with_density(scene, th)
             img_a, var_a = jaxfog.render(sc, ka, spp, variance=True)
             img_b = jaxfog.render(sc, kb, spp)
             noise = jax.lax.stop_gradient(var + var_a)
-            floor = 1e-3 * jnp.mean(noise) + 1e-12
-            w = 1.0 / (noise + floor)
+            w = 1.0 / (noise + 1e-3 * jnp.mean(noise) + 1e-12)
             resid = jax.lax.stop_gradient(img_a - target)
-            loss = loss + jnp.sum(resid * img_b * w)  # gradient: sum r w dI_b (the two-key estimate)
-            chi2 = chi2 + jnp.mean(resid ** 2 * w)
-        return loss, chi2 / len(views)
+            # the gradient of this is sum r w dI_b: the two-key estimate of the squared residual's half-gradient
+            return jnp.sum(resid * img_b * w), jnp.mean(resid ** 2 * w)
 
-    @jax.jit
+        return jax.value_and_grad(data, has_aux=True)(theta)
+
+    prior = jax.jit(jax.value_and_grad(neighbour_penalty))
+
     def step(theta, weight, key):
-        (loss, chi2), g = jax.value_and_grad(data, has_aux=True)(theta, key)
-        prior, g_prior = jax.value_and_grad(neighbour_penalty)(theta)
-        return loss + weight * prior, chi2, g + weight * g_prior
+        loss, chi2, grad = 0.0, 0.0, jnp.zeros_like(theta)
+        for i, (scene, target, var) in enumerate(views):
+            (li, ci), gi = one_view(theta, scene, target, var, jax.random.fold_in(key, i))
+            loss, chi2, grad = loss + li, chi2 + ci, grad + gi
+        p, gp = prior(theta)
+        return loss + weight * p, chi2 / len(views), grad + weight * gp
 
     return step
 
 
 def hutchinson_diagonal(views, theta, spp: int, key, probes: int = 8):
     """`diag(J^T W J)` of the data term at `theta` (per voxel), from `probes` random-sign vector-Jacobian products:
-    `E[(J^T W^(1/2) z)^2] = diag(J^T W J)` for `z` of independent +-1 entries."""
+    `E[(J^T W^(1/2) z)^2] = diag(J^T W J)` for `z` of independent +-1 entries (one compiled program for all)."""
+
+    @eqx.filter_jit
+    def probe(theta, scene, var, z, k):
+        w_sqrt = 1.0 / jnp.sqrt(var + 1e-3 * jnp.mean(var) + 1e-12)
+        return jax.grad(lambda th: jnp.sum(jaxfog.render(with_density(scene, th), k, spp) * w_sqrt * z))(theta)
+
     diag = jnp.zeros_like(theta)
     for p in range(probes):
         for i, (scene, target, var) in enumerate(views):
             k = jax.random.fold_in(jax.random.fold_in(key, p), i)
             z = jnp.where(jax.random.bernoulli(jax.random.fold_in(k, 1), shape=target.shape), 1.0, -1.0)
-            w_sqrt = 1.0 / jnp.sqrt(var + 1e-3 * jnp.mean(var) + 1e-12)
-            f = lambda th: jnp.sum(jaxfog.render(with_density(scene, th), k, spp) * w_sqrt * z)  # noqa: B023,E731
-            diag = diag + jax.grad(f)(theta) ** 2
+            diag = diag + probe(theta, scene, var, z, k) ** 2
     return diag / probes
 
 
@@ -143,21 +158,26 @@ def fit_grid(views, *, iterations: int, spp: int, start: float, seed: int, smoot
     step = make_step(views, spp)
     key = jax.random.key(seed)
     history, t0 = [], time.perf_counter()
+    chi2_window = []
     for it in range(1, iterations + 1):
         loss, chi2, g = step(theta, jnp.float32(weight), jax.random.fold_in(key, it))
         m = BETAS[0] * m + (1 - BETAS[0]) * g
         v = BETAS[1] * v + (1 - BETAS[1]) * g * g
         m_hat, v_hat = m / (1 - BETAS[0] ** it), v / (1 - BETAS[1] ** it)
-        theta = theta - STEP * m_hat / (jnp.sqrt(v_hat) + 1e-8)
+        lr = STEP * (1.0 - 0.8 * (it - 1) / max(iterations - 1, 1))  # decays to a fifth: the noise settles
+        theta = theta - lr * m_hat / (jnp.sqrt(v_hat) + 1e-8)
         rec = {"iteration": it, "loss": float(loss), "chi2": float(chi2), "weight": weight,
                "seconds": time.perf_counter() - t0}
         if truth is not None:
             rec["volume_error"] = float(np.linalg.norm(np.exp(np.asarray(theta)) - truth) / np.linalg.norm(truth))
         history.append(rec)
-        if it % 10 == 0:
-            if smooth == "auto":
-                weight = weight * 2.0 if chi2 < 1.0 else weight / 2.0 if chi2 > 2.0 else weight
-            log(f"  iteration {it}: chi2/px {float(chi2):.3f}, prior weight {weight:.3g}, "
+        chi2_window.append(float(chi2))
+        if it % WINDOW == 0:
+            mean_chi2 = float(np.mean(chi2_window))
+            chi2_window = []
+            if smooth == "auto" and it >= iterations // 3:  # once the fit has approached the images
+                weight = weight * 2.0 if mean_chi2 < 1.0 else weight / 2.0 if mean_chi2 > 2.0 else weight
+            log(f"  iteration {it}: chi2/px {mean_chi2:.3f} (mean of {WINDOW}), prior weight {weight:.3g}, "
                 + (f"volume error {rec['volume_error']:.3f}, " if truth is not None else "")
                 + f"{rec['seconds']:.0f} s")
     density = np.exp(np.asarray(theta))

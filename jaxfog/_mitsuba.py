@@ -15,6 +15,9 @@ branch). How each part maps is in `docs/conventions.md` ("Mitsuba 3"); in short:
   `GRID_STEP` scale heights apart, so the grid's extinction is within `GRID_REL_ERROR` of jaxfog's), in a box of
   side `extent` across and from where the fog below the camera and lights is opaque to where the fog above is
   negligible; otherwise as homogeneous fog filling space;
+- grid fog: `heterogeneous` with a `gridvolume` of the file's grid (`filter_type = "trilinear"`, `wrap_mode =
+  "clamp"`, `to_world` mapping the unit cube onto the box), `scale`, `albedo` and the phase, inside the box's `cube`
+  with a `null` BSDF as bounded homogeneous fog;
 - rectangles: `rectangle` with `to_world` columns `(edge_u / 2, edge_v / 2, normal, center)`, so Mitsuba's local +z
   normal is jaxfog's front normal `normalize(cross(edge_u, edge_v))`; spheres: `sphere`; meshes: `ply` / `obj`
   (`filename`, `face_normals` unless `smooth`, `to_world`: the same matrix);
