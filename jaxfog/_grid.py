@@ -176,7 +176,8 @@ def _cell_cubic(flat, res, g0, gd, start, length) -> Float[Array, "C 4"]:
     v = _cell_values(flat, res, i0)  # (z, y, x, C)
     alpha = g0 + start * gd - i0  # fractional coordinates at the interval's start
     cx = [[_lerp_linear([v[z, y, 0]], [v[z, y, 1]], alpha[0], gd[0]) for y in (0, 1)] for z in (0, 1)]
-    cy = [_lerp_linear(cx[z][0], cx[z][1], alpha[1], gd[1]) for z in (0, 1)]
+    cx = jax.lax.optimization_barrier(cx)  # computed once: XLA would copy each product into every consumer
+    cy = jax.lax.optimization_barrier([_lerp_linear(cx[z][0], cx[z][1], alpha[1], gd[1]) for z in (0, 1)])
     return jnp.stack(_lerp_linear(cy[0], cy[1], alpha[2], gd[2]), axis=-1)  # (C, 4)
 
 
@@ -216,11 +217,12 @@ def profile(flat, res, lo, hi, o, d) -> Profile:
         k = jnp.where(gd[axis] > 0, k, count - 1 - k)  # planes in the order the ray meets them
         t = (k - g0[axis]) / jnp.where(moving, gd[axis], 1.0)  # double where: an axis the ray runs along has none
         lists.insert(-1, jnp.clip(jnp.where(moving, t, b), a, b))
-    t = _merge_sorted(lists)
+    t = jax.lax.optimization_barrier(_merge_sorted(lists))
     start, length = t[:-1], jnp.maximum(t[1:] - t[:-1], 0.0)
     coef = jax.vmap(lambda s0, ln: _cell_cubic(flat, res, g0, gd, s0, ln))(start, length)  # (m, C, 4)
+    coef = jax.lax.optimization_barrier(coef)  # every later use reads the coefficients, none recomputes them
     depth = jnp.maximum(poly_integral(coef, length[:, None]), 0.0)  # (m, C)
-    return Profile(start, length, coef, jnp.cumsum(depth, axis=0) - depth)
+    return Profile(*jax.lax.optimization_barrier((start, length, coef, jnp.cumsum(depth, axis=0) - depth)))
 
 
 def optical_depth(pr: Profile, scale, t) -> Float[Array, " C"]:
