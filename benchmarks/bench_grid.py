@@ -65,9 +65,9 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         jf.render_mitsuba(REPO / "data_synthetic" / "scenes" / "grid_fog.json", spp=spp_mi, overrides=ov)
         mitsuba = {"spp": spp_mi, "ms_per_spp": 1e3 * (time.perf_counter() - t) / spp_mi, "variant": "scalar_rgb"}
-    cols = [("grid", "grid"), ("homogeneous_ms_per_spp", "homogeneous ms/spp", ".1f"),
-            ("grid_ms_per_spp", "grid ms/spp", ".1f"), ("ratio", "ratio (interleaved)", ".2f"),
-            ("grid_compile_s", "grid compile s", ".1f")]
+    cols = [("grid", "grid"), ("homogeneous ms/spp", "homogeneous_ms_per_spp", ".1f"),
+            ("grid ms/spp", "grid_ms_per_spp", ".1f"), ("ratio (interleaved)", "ratio", ".2f"),
+            ("grid compile s", "grid_compile_s", ".1f")]
     print_table(rows, cols)
     if mitsuba:
         print(f"Mitsuba 3 (scalar_rgb), 16^3: {mitsuba['ms_per_spp']:.1f} ms/spp")
