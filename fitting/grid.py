@@ -63,21 +63,20 @@ def load_views(pairs, downscale: int | None):
     views = []
     shape = None
     for scene_path, target_path in pairs:
-        sf = jaxfog.load_scene(scene_path)
-        med = sf.scene.medium
-        if not isinstance(med, jaxfog.GridMedium):
-            raise ValueError(f"{scene_path}: the medium is {type(med).__name__}; fitting.grid fits a grid medium")
-        if shape is None:
-            shape = (med.density.shape, np.asarray(med.bounds[0]).tolist(), np.asarray(med.bounds[1]).tolist())
-        elif (med.density.shape, np.asarray(med.bounds[0]).tolist(), np.asarray(med.bounds[1]).tolist()) != shape:
-            raise ValueError(f"{scene_path}: its grid (shape and box) differs from the first view's")
         target, _ = jaxfog.read_exr(target_path)
         H, W = target.shape[:2]
         f = downscale or max(1, min(H, W) // 16)
         if H % f or W % f:
             raise ValueError(f"{target_path}: {W} x {H} px is not divisible by --downscale {f}")
-        small = target.reshape(H // f, f, W // f, f, 3).mean((1, 3))
         sf = jaxfog.load_scene(scene_path, [f"camera.width={W // f}", f"camera.height={H // f}"])
+        med = sf.scene.medium
+        if not isinstance(med, jaxfog.GridMedium):
+            raise ValueError(f"{scene_path}: the medium is {type(med).__name__}; fitting.grid fits a grid medium")
+        grid = (med.density.shape, np.asarray(med.bounds[0]).tolist(), np.asarray(med.bounds[1]).tolist())
+        if shape is not None and grid != shape:
+            raise ValueError(f"{scene_path}: its grid (shape and box) differs from the first view's")
+        shape = grid
+        small = target.reshape(H // f, f, W // f, f, 3).mean((1, 3))
         spread = target.reshape(H // f, f, W // f, f, 3).var((1, 3), ddof=1) / (f * f) if f > 1 else None
         var = spread if spread is not None else np.full_like(small, max(float(small.var()) * 1e-4, 1e-12))
         views.append((sf.scene, jnp.asarray(small), jnp.asarray(var)))

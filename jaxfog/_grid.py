@@ -70,15 +70,6 @@ MAX_VOXELS = 2 ** 31
 
 
 # ------------------------------------------------------------------------------------------------ pure math
-def lerp_poly(a: Float[Array, "... k"], b: Float[Array, "... k"], alpha, beta) -> Float[Array, "... k+1"]:
-    """Coefficients (lowest degree first, on the last axis) of `a(s) + (b(s) - a(s)) (alpha + beta s)`: one linear
-    interpolation step of polynomials `a`, `b` of degree k - 1 with a weight linear in `s`."""
-    diff = b - a
-    zero = jnp.zeros_like(a[..., :1])
-    return (jnp.concatenate([a + alpha * diff, zero], axis=-1)
-            + jnp.concatenate([zero, beta * diff], axis=-1))
-
-
 def poly_value(c: Float[Array, "... 4"], s) -> Float[Array, "..."]:
     """The cubic `c0 + c1 s + c2 s^2 + c3 s^3` (Horner)."""
     return c[..., 0] + s * (c[..., 1] + s * (c[..., 2] + s * c[..., 3]))

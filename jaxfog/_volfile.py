@@ -162,6 +162,15 @@ def _check_values(a: np.ndarray, where: str) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- .vol
+def _unreadable(path: str, e: OSError, kind: str) -> GridFileError:
+    """The one-line error for a grid file that cannot be opened or read (`kind`: ".vol" or ".npy")."""
+    if isinstance(e, FileNotFoundError):
+        return GridFileError(f"{path}: grid file not found")
+    if isinstance(e, IsADirectoryError):
+        return GridFileError(f"{path}: is a directory; expected a {kind} grid file")
+    return GridFileError(f"{path}: cannot read grid file: {e.strerror or e}")
+
+
 def _read_header(raw: bytes, path: str) -> _Header:
     if raw[:3] != VOL_MAGIC[:len(raw[:3])]:
         raise GridFileError(f"{path}: not a Mitsuba .vol file (starts with {raw[:3]!r}; expected {VOL_MAGIC!r})")
@@ -202,12 +211,8 @@ def read_vol(path, context: str | None = None) -> tuple[np.ndarray, tuple[np.nda
                     raise GridFileError(f"{path}: {what}: {size - VOL_HEADER_BYTES} bytes of data; expected "
                                         f"{4 * n} (x {x} * y {y} * z {z} * {c} channel(s) * 4 bytes)")
                 data = np.fromfile(fh, dtype="<f4", count=n)
-        except FileNotFoundError:
-            raise GridFileError(f"{path}: grid file not found") from None
-        except IsADirectoryError:
-            raise GridFileError(f"{path}: is a directory; expected a .vol grid file") from None
         except OSError as e:
-            raise GridFileError(f"{path}: cannot read grid file: {e.strerror or e}") from None
+            raise _unreadable(path, e, ".vol") from None
         if data.size != n:  # the file shrank while being read
             raise GridFileError(f"{path}: truncated: {4 * data.size} bytes of data; expected {4 * n}")
         grid = np.ascontiguousarray(data.reshape(z, y, x, c), dtype=np.float32)
@@ -268,12 +273,8 @@ def _read_npy(path: str) -> np.ndarray:
             _check_resolution(shape[2::-1], c, where)
             fh.seek(0)
             return np.load(fh, allow_pickle=False)
-    except FileNotFoundError:
-        raise GridFileError(f"{path}: grid file not found") from None
-    except IsADirectoryError:
-        raise GridFileError(f"{path}: is a directory; expected a .npy grid file") from None
     except OSError as e:
-        raise GridFileError(f"{path}: cannot read grid file: {e.strerror or e}") from None
+        raise _unreadable(path, e, ".npy") from None
     except ValueError as e:
         if isinstance(e, GridFileError):
             raise

@@ -271,3 +271,21 @@ def jaxfog_and_mitsuba_images(path, overrides, n: int, spp: int):
     theirs = np.stack([jf.render_mitsuba(path, spp, seed=k, overrides=overrides).astype(np.float64)
                        for k in range(n)])
     return ours, theirs
+
+
+def trilinear_reference(grid: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """float64 trilinear interpolation of `grid` (nz, ny, nx, c) at unit-cube points `u` (x, y, z): texel centres
+    at (i + 0.5) / n, coordinates clamped to the outermost centres."""
+    n = np.array(grid.shape[2::-1], np.float64)  # (nx, ny, nz)
+    p = np.clip(u * n - 0.5, 0.0, n - 1)
+    i0 = np.minimum(np.floor(p).astype(int), (n - 1).astype(int))
+    i1 = np.minimum(i0 + 1, (n - 1).astype(int))
+    t = p - i0
+    out = 0.0
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                w = (t[0] if dx else 1 - t[0]) * (t[1] if dy else 1 - t[1]) * (t[2] if dz else 1 - t[2])
+                ix, iy, iz = ((i1 if d else i0)[k] for k, d in enumerate((dx, dy, dz)))
+                out = out + w * grid[iz, iy, ix].astype(np.float64)
+    return out

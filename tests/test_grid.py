@@ -19,6 +19,8 @@ import jaxfog as jf
 from jaxfog._grid import GridMedium, distance_at_depth, profile
 from jaxfog._medium import HomogeneousMedium
 
+from helpers import trilinear_reference
+
 REPO = Path(__file__).resolve().parent.parent
 BOX = ((-1.0, -1.0, -1.0), (1.0, 2.0, 1.5))
 
@@ -36,18 +38,7 @@ def _numpy_trilinear(grid, box, p):
     lo, hi = (np.asarray(b, np.float64) for b in box)
     if np.any(p < lo) or np.any(p > hi):
         return np.zeros(grid.shape[-1])
-    nz, ny, nx, _ = grid.shape
-    x = (p - lo) / (hi - lo) * np.array([nx, ny, nz]) - 0.5
-    i0 = np.floor(x).astype(int)
-    f = x - i0
-    out = 0.0
-    for dz in (0, 1):
-        for dy in (0, 1):
-            for dx in (0, 1):
-                w = (f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1]) * (f[2] if dz else 1 - f[2])
-                ix, iy, iz = (np.clip(i0[k] + dd, 0, n - 1) for k, dd, n in ((0, dx, nx), (1, dy, ny), (2, dz, nz)))
-                out = out + w * grid[iz, iy, ix].astype(np.float64)
-    return out
+    return trilinear_reference(grid, (p - lo) / (hi - lo))
 
 
 # ------------------------------------------------------------------------------------------------- lookups

@@ -10,6 +10,7 @@ import struct
 import numpy as np
 import pytest
 
+from helpers import trilinear_reference
 from jaxfog import _mitsuba
 from jaxfog._scene_io import SceneError
 from jaxfog._volfile import (MAX_GRID_VALUES, VOL_HEADER_BYTES, GridFileError, load_grid, read_vol, validate_grid,
@@ -291,24 +292,6 @@ def test_mitsuba_reads_our_file_and_we_read_its_file(mi, tmp_path, channels):
     assert theirs.read_bytes()[VOL_HEADER_BYTES:] == ours.read_bytes()[VOL_HEADER_BYTES:]
 
 
-def _trilinear(grid: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """float64 trilinear interpolation of `grid` (nz, ny, nx, c) at unit-cube points `u` (x, y, z): texel centres
-    at (i + 0.5) / n, coordinates clamped to the outermost centres."""
-    n = np.array(grid.shape[2::-1], np.float64)  # (nx, ny, nz)
-    p = np.clip(u * n - 0.5, 0.0, n - 1)
-    i0 = np.minimum(np.floor(p).astype(int), (n - 1).astype(int))
-    i1 = np.minimum(i0 + 1, (n - 1).astype(int))
-    t = p - i0
-    out = 0.0
-    for dx in (0, 1):
-        for dy in (0, 1):
-            for dz in (0, 1):
-                w = (t[0] if dx else 1 - t[0]) * (t[1] if dy else 1 - t[1]) * (t[2] if dz else 1 - t[2])
-                ix, iy, iz = ((i1 if d else i0)[k] for k, d in enumerate((dx, dy, dz)))
-                out = out + w * grid[iz, iy, ix].astype(np.float64)
-    return out
-
-
 def test_mitsuba_evaluates_the_grid_medium(mi, tmp_path):
     """Mitsuba's `gridvolume` from the converter, at points in the box (inside and in the clamped border), is the
     grid's trilinear interpolation with texel centres at (i + 0.5) / n of the box; the heterogeneous medium scales
@@ -324,13 +307,15 @@ def test_mitsuba_evaluates_the_grid_medium(mi, tmp_path):
     for u in [*rng.uniform(0.0, 1.0, (12, 3)), np.array([0.01, 0.99, 0.5]), np.array([0.5 / 5, 0.5 / 4, 0.5 / 3])]:
         it = mi.Interaction3f()
         it.p = mi.Point3f(*(lo + u * (hi - lo)).tolist())
-        np.testing.assert_allclose(np.array(vol.eval(it), np.float64), _trilinear(grid, u), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(np.array(vol.eval(it), np.float64), trilinear_reference(grid, u), rtol=1e-5,
+                                   atol=1e-6)
     medium = mi.load_dict(fog.medium)
     m = mi.MediumInteraction3f()
     m.p = mi.Point3f(*((lo + hi) / 2).tolist())
     m.wavelengths = []
     _, _, sigma_t = medium.get_scattering_coefficients(m)
-    np.testing.assert_allclose(np.array(sigma_t, np.float64), 2.0 * _trilinear(grid, np.full(3, 0.5)), rtol=1e-5)
+    np.testing.assert_allclose(np.array(sigma_t, np.float64), 2.0 * trilinear_reference(grid, np.full(3, 0.5)),
+                               rtol=1e-5)
     scene = mi.load_dict({"type": "scene", "fog": fog.medium,
                           "box": {"type": "cube", "to_world": ex.to_world(fog.cube), "bsdf": {"type": "null"},
                                   "interior": {"type": "ref", "id": "fog"}}})
