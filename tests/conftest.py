@@ -11,6 +11,8 @@ Configuration
 
 from __future__ import annotations
 
+import os
+
 import jax
 import numpy as np
 import pytest
@@ -30,6 +32,17 @@ from helpers import (
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jf.use_cpu_cores()  # every core a JAX device, as the command-line entry points do: renders run sharded
+
+
+
+def pytest_xdist_auto_num_workers(config):
+    """Workers for `-n auto` (pyproject's addopts): two for the default run, whose time is mostly XLA compiling one
+    program at a time, so two processes on 2 cores take ~0.6x the wall of one; none (one process) for any other
+    selection, e.g. `-m slow`, whose fits have time budgets and whose benchmarks time themselves (a second worker on
+    the same cores would change what they measure)."""
+    if config.option.markexpr.strip() != "not slow":
+        return 0
+    return min(2, os.cpu_count() or 1) if (os.cpu_count() or 1) >= 2 else 0
 
 
 # ------------------------------------------------------------------------------------------------ fixtures
