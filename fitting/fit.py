@@ -149,8 +149,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "with many samples each keep the Jacobian's noise low, docs/results/fit_sweep)")
     p.add_argument("--budget", type=float, default=None, metavar="SECONDS",
                    help=f"time budget of each local solve: its estimate stops with the passes it has when it is spent "
-                        f"(default {FitConfig.time_budget:g}; none in a multi-process fit, whose processes must "
-                        f"decide alike; a solve also stops when its standard errors reach 1%% or stop shrinking)")
+                        f"(default {FitConfig.time_budget:g}; `inf`: none; with several processes, process 0's "
+                        f"clock decides for all; a solve also stops when its standard errors reach 1%% or stop "
+                        f"shrinking)")
     p.add_argument("--candidates", nargs="+", default=[], metavar="SCENE.json",
                    help="after the fit, rank these views (scene files of the same medium: other cameras or lights) by "
                         "how much a target of each would shrink the uncertainty")
@@ -183,13 +184,8 @@ def main(argv=None) -> int:
     except LaunchError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    if launch is not None and args.budget is not None and np.isfinite(args.budget):
-        print(f"error: --budget {args.budget:g}: a multi-process fit has no time budget (each process's clock "
-              f"would stop it at another pass, and the processes must make the same decisions); leave --budget "
-              f"out: the fit stops at its precision or batch limits", file=sys.stderr)
-        return 2
     if args.budget is None:
-        args.budget = FitConfig.time_budget if launch is None else float("inf")
+        args.budget = FitConfig.time_budget
     from jaxfog.tools import use_cpu_cores
 
     use_cpu_cores()  # every core as a JAX device (warns if JAX has already started with another count)
@@ -456,15 +452,19 @@ def load_pair(scene_path: str, target_path: str, args) -> tuple:
     name = os.path.basename(target_path)
     if photo is None:
         return make_view(sf.scene, target, name, args.downscale, spp_t), sf.scene, target, true_values(meta)
-    view = make_view(sf.scene, target, name, args.downscale, None, photo.valid, photo.noise_var)
+    view = make_view(sf.scene, target, name, args.downscale, None, photo.valid, photo.noise_var, photo.variance)
     print(f"{name}: {photo.curve} curve, {photo.bits or 'float'} bit; pixels left out: "
           + (", ".join(f"{k} {v}" for k, v in photo.masked.items()) or "none")
           + (f"; camera: {photo.exif}" if photo.exif else ""))
+    if photo.noise is not None:
+        print(f"{name}: camera noise from the image: shot " + " ".join(f"{a:.3g}" for a in photo.noise["shot"])
+              + " x value, read " + " ".join(f"{r:.3g}" for r in photo.noise["read"]) + " (R G B, linear values)"
+              + ("; a JPEG: weights from the block estimate instead" if photo.lossy else ""))
     warning = fov_check(photo.exif, float(cam.fov), cam.width, cam.height)
     if warning:
         print(f"warning: {name}: {warning}")
     args.photos[name] = {"curve": photo.curve, "bits": photo.bits, "masked": photo.masked, "exif": photo.exif,
-                         "fov_warning": warning}
+                         "fov_warning": warning, "noise": photo.noise, "lossy": photo.lossy}
     return view, sf.scene, target, {}
 
 

@@ -11,9 +11,12 @@ compressed, and noisy): the fit works on the linear values `curve^-1(code)`, wit
 - a **validity mask**: a pixel with any channel within `CLIP_MARGIN` of the encoding's top (a clipped highlight) or
   within `CRUSH_MARGIN` of its bottom (a crushed black) says only that the radiance is beyond a bound, and is not
   fitted; a user mask (white = use) removes what the scene file does not describe;
-- a **noise floor**: the linear variance of one code step of quantisation through the curve's slope,
-  `(dL/dv)^2 step^2 / 12`, which `fitting.problem.block_noise` (the image's own pixel-to-pixel noise: shot, read and
-  JPEG error) cannot see in flat regions, where quantisation turns noise into steps.
+- a **noise model** estimated from the image itself (`camera_noise`): the camera's shot and read noise, and the
+  pixel-to-pixel part of the JPEG error, as a variance `a_c L + b_c` per channel in linear values (Poisson-Gaussian:
+  `a` from the photons per unit value, `b` the read noise squared), fitted to second-difference statistics of the
+  flat regions binned by brightness; with a **floor**, the linear variance of one code step of quantisation through
+  the curve's slope, `(dL/dv)^2 step^2 / 12`, which second differences cannot see in flat regions, where
+  quantisation turns noise into steps.
 """
 
 from __future__ import annotations
@@ -59,7 +62,9 @@ class Photo:
     """A target decoded to linear values. `image` float32 `(H, W, 3)`; `valid` bool `(H, W)` (pixels to fit);
     `noise_var` float64 `(H, W, 3)` the quantisation noise floor of each linear value (zeros for float files);
     `curve` what decoded it; `bits` the code depth (None for float files); `exif` what the file says of the camera
-    (`exposure_time_s`, `iso`, `f_number`, `focal_length_mm`, `focal_length_35mm`); `masked` counts by reason."""
+    (`exposure_time_s`, `iso`, `f_number`, `focal_length_mm`, `focal_length_35mm`, `focal_plane_x_per_mm`);
+    `masked` counts by reason; `noise` the camera noise model `{"shot": a, "read": sqrt(b)}` per channel (linear
+    values; None for float files, or when too few flat pixels are left to fit it)."""
 
     image: np.ndarray
     valid: np.ndarray
@@ -68,6 +73,22 @@ class Photo:
     bits: int | None
     exif: dict = field(default_factory=dict)
     masked: dict = field(default_factory=dict)
+    noise: dict | None = None
+    lossy: bool = False
+
+    @property
+    def variance(self) -> np.ndarray | None:
+        """Each linear value's noise variance `(H, W, 3)`: the camera model at the pixel's local mean brightness, at
+        least the quantisation floor. None without a model, and for a lossy (JPEG) file: JPEG removes most of the
+        noise's high frequencies, which second differences measure, and keeps its low ones, which a pooled pixel
+        holds (measured, docs/photographs.md: at quality 95 the model reads 30% of the shot noise, at 85 19%); the
+        fit then estimates the noise block by block and its standard errors from the residuals."""
+        if self.noise is None or self.lossy:
+            return None
+        a = np.asarray(self.noise["shot"], np.float64)
+        b = np.asarray(self.noise["read"], np.float64) ** 2
+        mu = _local_mean(np.asarray(self.image, np.float64))
+        return np.maximum(a * np.maximum(mu, 0.0) + b, self.noise_var)
 
 
 def parse_curve(curve: str | None) -> tuple[str, float | None] | None:
@@ -101,6 +122,8 @@ def read_exif(spec) -> dict:
             "f_number": ("FNumber", "Exif:FNumber"),
             "focal_length_mm": ("Exif:FocalLength", "FocalLength"),
             "focal_length_35mm": ("Exif:FocalLengthIn35mmFilm", "FocalLengthIn35mmFilm"),
+            "focal_plane_x_resolution": ("Exif:FocalPlaneXResolution",),
+            "pixel_x_dimension": ("Exif:PixelXDimension",),
             "camera": ("Model", "Make")}
     out = {}
     for k, names in keys.items():
@@ -117,21 +140,32 @@ def read_exif(spec) -> dict:
                     continue
             out[k] = v
             break
+    res = out.pop("focal_plane_x_resolution", None)  # pixels per unit of the sensor plane: per mm below
+    unit = spec.getattribute("Exif:FocalPlaneResolutionUnit")
+    per_mm = {2: 1 / 25.4, 3: 0.1, 4: 1.0}.get(int(unit) if isinstance(unit, (int, float)) else 2)  # 2 = inch
+    if res is not None and per_mm is not None:
+        out["focal_plane_x_per_mm"] = res * per_mm
     return out
 
 
 def fov_check(exif: dict, fov_deg: float, width: int, height: int) -> str | None:
-    """A warning when the scene's horizontal field of view and the one the focal length gives differ by more than 5%
-    (35 mm-equivalent focal length: a 36 mm wide frame for a landscape image, 24 mm for a portrait one); None when
-    they agree or the file does not say."""
-    f35 = exif.get("focal_length_35mm")
-    if not f35:
+    """A warning when the scene's horizontal field of view and the one the focal length gives differ by more than 5%;
+    None when they agree or the file does not say. From the 35 mm-equivalent focal length (a 36 mm wide frame for a
+    landscape image, 24 mm for a portrait one), else from the focal length and the sensor's width: the image's width
+    in the camera's pixels (`Exif:PixelXDimension`, else the file's) over the focal plane's pixels per mm."""
+    f35, f, per_mm = exif.get("focal_length_35mm"), exif.get("focal_length_mm"), exif.get("focal_plane_x_per_mm")
+    if f35:
+        focal, sensor = f35, 36.0 if width >= height else 24.0
+        what = f"{f35:g} mm, 35 mm equivalent"
+    elif f and per_mm:
+        focal, sensor = f, exif.get("pixel_x_dimension", width) / per_mm
+        what = f"{f:g} mm on a {sensor:.1f} mm wide sensor"
+    else:
         return None
-    frame = 36.0 if width >= height else 24.0
-    fov_exif = math.degrees(2.0 * math.atan(frame / (2.0 * f35)))
+    fov_exif = math.degrees(2.0 * math.atan(sensor / (2.0 * focal)))
     if abs(fov_exif - fov_deg) > 0.05 * fov_deg:
         return (f"the scene's camera has a {fov_deg:.1f} deg horizontal field of view; the photograph's focal length "
-                f"({f35:g} mm, 35 mm equivalent) gives {fov_exif:.1f} deg: a scene of another camera or zoom?")
+                f"({what}) gives {fov_exif:.1f} deg: a scene of another camera or zoom?")
     return None
 
 
@@ -163,7 +197,8 @@ def read_photo(path: str, curve: str | None = None, mask: str | None = None) -> 
     if mask is not None:
         user = read_mask(mask, photo.image.shape[:2])
         masked = dict(photo.masked, user=int(np.sum(~user & photo.valid)))
-        photo = Photo(photo.image, photo.valid & user, photo.noise_var, photo.curve, photo.bits, photo.exif, masked)
+        photo = Photo(photo.image, photo.valid & user, photo.noise_var, photo.curve, photo.bits, photo.exif, masked,
+                      photo.noise, photo.lossy)
     if not np.any(photo.valid):
         raise FitError(f"{path}: every pixel is masked ({photo.masked}): nothing to fit")
     return photo
@@ -207,7 +242,10 @@ def _read_encoded(path: str, curve: str | None) -> Photo:
     crushed = np.any(code <= CRUSH_MARGIN[bits] + 1e-6, axis=2)
     noise = _quantisation(oiio, code, step, kind, gamma, cs)
     masked = {"clipped": int(clipped.sum()), "crushed": int((crushed & ~clipped).sum())}
-    return Photo(lin, ~(clipped | crushed), noise, name, bits, exif, masked)
+    valid = ~(clipped | crushed)
+    lossy = (os.path.splitext(path)[1].lower() in (".jpg", ".jpeg")
+             or "jpeg" in (spec.get_string_attribute("compression") or "").lower())
+    return Photo(lin, valid, noise, name, bits, exif, masked, camera_noise(lin, valid), lossy)
 
 
 def _quantisation(oiio, code: np.ndarray, step: float, kind, gamma, cs) -> np.ndarray:
@@ -249,7 +287,104 @@ def _read_raw(path: str, curve: str | None) -> Photo:
     crushed = np.any(code <= 0.0, axis=2)
     noise = np.full(code.shape, (1.0 / 65535.0) ** 2 / 12.0)
     masked = {"clipped": int(clipped.sum()), "crushed": int((crushed & ~clipped).sum())}
-    return Photo(code.astype(np.float32), ~(clipped | crushed), noise, "raw (linear sensor values)", 16, exif, masked)
+    valid = ~(clipped | crushed)
+    return Photo(code.astype(np.float32), valid, noise, "raw (linear sensor values)", 16, exif, masked,
+                 camera_noise(code, valid))
+
+
+# ---- the camera's noise, from the image itself ------------------------------------------------------------------
+
+
+def _second_difference_variance(x: np.ndarray) -> np.ndarray:
+    """Per pixel of `x` `(H, W, C)`, the mean over both directions of `(x[i-1] - 2 x[i] + x[i+1])^2 / 6`: for
+    independent noise of variance v an estimate of v (a linear trend cancels); NaN on the border."""
+    v = np.full(x.shape, np.nan)
+    v[1:-1, 1:-1] = 0.5 * ((x[1:-1, 2:] - 2 * x[1:-1, 1:-1] + x[1:-1, :-2]) ** 2
+                           + (x[2:, 1:-1] - 2 * x[1:-1, 1:-1] + x[:-2, 1:-1]) ** 2) / 6.0
+    return v
+
+
+def _local_mean(x: np.ndarray) -> np.ndarray:
+    """The 3 x 3 box mean of `x` `(H, W, C)` (at the border, over the pixels that exist)."""
+    from .problem import box_mean
+
+    return box_mean(x, 1)
+
+
+def _median_to_mean() -> float:
+    """median / mean of `_second_difference_variance` under independent Gaussian noise (it is a scaled sum of two
+    correlated squares, not a named distribution): simulated once, 512 x 512 values, fixed seed (the ratio's own
+    standard error ~0.002)."""
+    if not _MEDIAN_TO_MEAN:
+        v = _second_difference_variance(np.random.default_rng(12345).standard_normal((514, 514, 1)))[1:-1, 1:-1]
+        _MEDIAN_TO_MEAN.append(float(np.median(v) / np.mean(v)))
+    return _MEDIAN_TO_MEAN[0]
+
+
+_MEDIAN_TO_MEAN: list = []
+NOISE_MIN_PIXELS = 64
+"""Flat-region pixels needed per channel to fit a camera noise model (at least 4 brightness bins of 16); fewer: no
+model, the fit estimates the noise block by block (`fitting.problem.block_noise`)."""
+
+
+def camera_noise(lin: np.ndarray, valid: np.ndarray) -> dict | None:
+    """The camera's noise in linear values `lin` `(H, W, 3)`, estimated from the image: per channel the
+    Poisson-Gaussian variance `a L + b` (shot noise `a`: 1 / photons per unit value, read noise `sqrt(b)`), the
+    pixel-to-pixel part of JPEG's error included. Method (after Foi et al. 2008, "Practical Poissonian-Gaussian noise
+    modeling and fitting for single-image raw-data"): each pixel's second-difference variance (`valid` pixels whose
+    3 x 3 neighbourhood is valid, so clipping does not truncate it), binned by the brightness of its four diagonal
+    neighbours (which the second differences do not use: a brightness that shared their noise would sort the pixels
+    by it) into quantile bins; in each bin the median (robust to the edges and texture of a minority of its pixels) over the
+    median-to-mean ratio of pure noise estimates the noise variance; `a >= 0`, `b >= 0` by weighted least squares
+    over the bins (weight: pixels / variance^2). Returns `{"shot": [a_r, a_g, a_b], "read": [...], "pixels": n}`, or
+    None with too few flat pixels (`NOISE_MIN_PIXELS`)."""
+    x = np.asarray(lin, np.float64)
+    ok = np.asarray(valid, bool)
+    inner = np.zeros_like(ok)  # the 3 x 3 neighbourhood valid
+    inner[1:-1, 1:-1] = np.all([ok[1 + dy:ok.shape[0] - 1 + dy, 1 + dx:ok.shape[1] - 1 + dx]
+                                for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
+    n = int(inner.sum())
+    if n < NOISE_MIN_PIXELS:
+        return None
+    diag = np.full(x.shape, np.nan)  # the brightness from the four diagonal neighbours: no pixel of the second
+    diag[1:-1, 1:-1] = 0.25 * (x[:-2, :-2] + x[:-2, 2:] + x[2:, :-2] + x[2:, 2:])  # differences, so binning by it
+    v, mu = _second_difference_variance(x)[inner], diag[inner]  # does not select pixels by their own noise
+    m = _median_to_mean()
+    bins = int(np.clip(n // 200, 4, 16))
+    shot, read = [], []
+    for c in range(x.shape[2]):
+        order = np.argsort(mu[:, c])
+        s, L, w = [], [], []
+        for idx in np.array_split(order, bins):
+            est = float(np.median(v[idx, c])) / m
+            if est > 0:
+                s.append(est)
+                L.append(float(np.mean(mu[idx, c])))
+                w.append(len(idx) / est ** 2)
+        a, b = _line_nonnegative(np.asarray(L), np.asarray(s), np.asarray(w))
+        shot.append(a)
+        read.append(math.sqrt(b))
+    return {"shot": shot, "read": read, "pixels": n}
+
+
+def _line_nonnegative(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, float]:
+    """Weighted least squares `y ~ a x + b` with `a, b >= 0` (the unconstrained solution, else the better of the two
+    one-parameter fits)."""
+    if len(x) == 0:
+        return 0.0, 0.0
+    sw, sx, sy = w.sum(), (w * x).sum(), (w * y).sum()
+    sxx, sxy = (w * x * x).sum(), (w * x * y).sum()
+    det = sw * sxx - sx * sx
+    if det > 0:
+        a = (sw * sxy - sx * sy) / det
+        b = (sy - a * sx) / sw
+        if a >= 0 and b >= 0:
+            return float(a), float(b)
+    cands = [(0.0, sy / sw)]
+    if sxx > 0:
+        cands.append((max(sxy / sxx, 0.0), 0.0))
+    cost = [float((w * (y - a * x - b) ** 2).sum()) for a, b in cands]
+    return cands[int(np.argmin(cost))]
 
 
 def read_mask(path: str, shape: tuple[int, int]) -> np.ndarray:

@@ -97,10 +97,12 @@ def box_mean(img: np.ndarray, r: int) -> np.ndarray:
 
 
 def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int = 1, target_spp=None,
-              valid: np.ndarray | None = None, noise_floor: np.ndarray | None = None) -> View:
+              valid: np.ndarray | None = None, noise_floor: np.ndarray | None = None,
+              noise: np.ndarray | None = None) -> View:
     """Check the target against the scene's camera and bring both to the fit resolution (1 / `downscale`). `valid`
     (bool `(H, W)`) the pixels to fit (a photograph's, `fitting.photo`); `noise_floor` (`(H, W, 3)`) each value's
-    variance that the target's own block estimate cannot see (quantisation)."""
+    variance that the target's own block estimate cannot see (quantisation); `noise` (`(H, W, 3)`) each value's noise
+    variance from a camera model (`fitting.photo.Photo.variance`), used instead of the block estimate."""
     cam = scene.camera
     target = np.asarray(target, np.float32)
     if target.ndim != 3 or target.shape[2] != 3:
@@ -127,7 +129,10 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov,
                           width=cam.width // downscale, height=cam.height // downscale)
     scene = eqx.tree_at(lambda s: s.camera, scene, small)
-    var = block_noise(target, downscale)
+    if noise is None:
+        var = block_noise(target, downscale)
+    else:
+        var = pool(np.asarray(noise, np.float64), downscale) / downscale ** 2
     if noise_floor is not None:
         var = np.maximum(var, pool(np.asarray(noise_floor, np.float64), downscale) / downscale ** 2)
     small_ok = None if valid is None else pool(ok[:, :, None].astype(np.float64), downscale)[:, :, 0] >= 1.0

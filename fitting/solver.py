@@ -214,7 +214,16 @@ def _failed_pass(problem, state: FitState, log) -> FitState:
 
 
 def _over_budget(state: FitState, cfg: FitConfig) -> bool:
-    return cfg.time_budget is not None and time.perf_counter() - state.t_attempt > cfg.time_budget
+    """Whether the local solve has spent its time budget. Called once in every approach and estimate round, whatever
+    the round decides otherwise: with several processes (docs/distributed.md) process 0's clock decides and its
+    answer is broadcast to the others (one collective a round, reached by every process in the same order), so all
+    processes stop at the same pass."""
+    over = cfg.time_budget is not None and time.perf_counter() - state.t_attempt > cfg.time_budget
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        over = bool(multihost_utils.broadcast_one_to_all(np.int32(over)))
+    return over
 
 
 def approach_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> FitState:
@@ -248,8 +257,8 @@ def approach_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
     step = gauss_newton(pa, pb, w, problem.target_variance(u), problem.pixel_of)
     length = mahalanobis(delta, step.cov_render) if step is not None else float("inf")
     small = float(np.max(np.abs(delta))) <= cfg.linear_du or length ** 2 <= chi2_quantile(len(problem.names))
-    done = ((small and lam <= LAMBDA_SMALL) or lam >= LAMBDA_MAX or state.approach + 1 >= cfg.max_approach
-            or _over_budget(state, cfg))
+    over = _over_budget(state, cfg)
+    done = (small and lam <= LAMBDA_SMALL) or lam >= LAMBDA_MAX or state.approach + 1 >= cfg.max_approach or over
     records = _record(state, problem, "approach", y, log, loss=loss[0], damping=lam, step_se=length,
                       **({"trial": verdict} if verdict else {}))
     nxt = dict(y=y, u=u, base=base, lam=lam, round=state.round + 1, approach=state.approach + 1, failures=0,
@@ -300,14 +309,14 @@ def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
     records = _record(state, problem, "estimate", y_hat, log, batches=len(passes), step_se=length,
                       worst_se=float(np.max(rel)), quality=step.quality)
     state = state.replace(round=state.round + 1, failures=0, records=records)
+    over = _over_budget(state, cfg)
     big = float(np.max(np.abs(step.delta)))
     if big > cfg.max_step_u / 2 and length > SIGNIFICANT and state.recentres < cfg.max_recentres:
         log(f"  (the estimate is {big:.2f} from the passes' point in an unconstrained coordinate and {length:.1f} "
             f"standard errors: too far for one linearisation, back to the approach)")
         return state.replace(phase="approach", passes=(), recentres=state.recentres + 1, base=None, trial=None,
                              lam=LAMBDA_START)
-    if cfg.linear_du < big <= cfg.max_step_u / 2 and state.recentres < cfg.max_recentres \
-            and not _over_budget(state, cfg):
+    if cfg.linear_du < big <= cfg.max_step_u / 2 and state.recentres < cfg.max_recentres and not over:
         log(f"  (re-centred on the estimate, {big:.3f} away in an unconstrained coordinate; the passes so far moved "
             f"with it by their Jacobians)")
         return state.replace(y=y_hat, passes=tuple((_moved(a, step.delta), _moved(b, step.delta)) for a, b in passes),
@@ -318,7 +327,7 @@ def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
     render_small = np.all(np.diag(step.cov_render) <= cfg.render_share * model)
     linear = float(np.max(np.abs(step.delta))) <= cfg.linear_du and step.quality >= QUALITY_MIN
     enough = len(passes) >= cfg.min_batches and linear and (np.all(rel <= cfg.precision) or render_small)
-    if enough or len(passes) >= cfg.max_batches or _over_budget(state, cfg):
+    if enough or len(passes) >= cfg.max_batches or over:
         return state.replace(passes=passes, step=step, phase="check")
     return state.replace(passes=passes, step=step)
 

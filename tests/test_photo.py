@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from fitting.params import FitError, check_names, gains
-from fitting.photo import (CLIP_MARGIN, CRUSH_MARGIN, camera_encode, fov_check, parse_curve, read_mask, read_photo,
-                           write_photo)
+from fitting.photo import (CLIP_MARGIN, CRUSH_MARGIN, camera_encode, camera_noise, fov_check, parse_curve, read_mask,
+                           read_photo, write_photo)
 from fitting.visibility import K, visibility
 
 
@@ -119,6 +119,75 @@ def test_raw_files_need_rawpy_or_are_decoded(tmp_path):
         read_photo(str(fake))
 
 
+def test_jpeg_decodes_through_the_srgb_curve_within_its_compression_error(tmp_path):
+    """A grey ramp written as an sRGB JPEG (quality 100; grey: no chroma subsampling error) and read back: every value
+    within 2 code steps of the encoding (JPEG's rounding of the DCT at quality 100 moves a code by at most ~1)
+    carried through the curve's slope; the file is known to be lossy, so its noise model does not set the weights."""
+    lin = _ramp(h=16, top=0.9)
+    path = str(tmp_path / "ramp.jpg")
+    write_photo(path, lin, bits=8, quality=100)
+    ph = read_photo(path)
+    assert ph.bits == 8 and "srgb" in ph.curve and ph.lossy and ph.variance is None
+    step = 1.0 / 255.0
+    enc = (1.055 * lin ** (1 / 2.4) - 0.055) * (lin > 0.0031308) + 12.92 * lin * (lin <= 0.0031308)
+    bound = np.abs(_srgb_decode(np.minimum(enc + 2 * step, 1.0)) - _srgb_decode(np.maximum(enc - 2 * step, 0.0))) / 2
+    ok = ph.valid
+    err = np.abs(ph.image.astype(np.float64) - lin)[ok]
+    assert ok.mean() > 0.9 and np.all(err <= bound[ok] + 1e-6), float(np.max(err - bound[ok]))
+
+
+def test_exif_is_read_and_the_field_of_view_checked_from_the_sensor(tmp_path):
+    """The camera's record written into a JPEG by OpenImageIO is read back (exposure time, ISO, f-number, focal
+    lengths, the focal plane's resolution); without a 35 mm-equivalent focal length the field of view comes from the
+    focal length and the sensor's width (6000 px at 250 px/mm = 24 mm; 2 atan(24 / 2 / 35) = 37.8 deg)."""
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(32, 16, 3, oiio.UINT8)
+    for k, v in (("ExposureTime", 0.01), ("FNumber", 2.8), ("Exif:FocalLength", 35.0),
+                 ("Exif:FocalPlaneXResolution", 250.0)):
+        spec.attribute(k, oiio.TypeFloat, v)
+    spec.attribute("Exif:ISOSpeedRatings", oiio.TypeInt, 400)
+    spec.attribute("Exif:FocalPlaneResolutionUnit", oiio.TypeInt, 4)  # mm
+    spec.attribute("Exif:PixelXDimension", oiio.TypeInt, 6000)
+    spec.attribute("Model", "TestCam")
+    buf = oiio.ImageBuf(spec)
+    oiio.ImageBufAlgo.fill(buf, (0.5, 0.5, 0.5))
+    path = str(tmp_path / "exif.jpg")
+    assert buf.write(path), buf.geterror()
+    exif = read_photo(path).exif
+    near = lambda v: pytest.approx(v, rel=1e-3)  # noqa: E731 - EXIF stores rationals (0.01 reads 0.009999)
+    assert exif["exposure_time_s"] == near(0.01) and exif["f_number"] == near(2.8)
+    assert exif["iso"] == 400 and exif["focal_length_mm"] == near(35.0) and exif["camera"] == "TestCam"
+    assert exif["focal_plane_x_per_mm"] == near(250.0) and exif["pixel_x_dimension"] == 6000
+    fov = math.degrees(2 * math.atan(24.0 / 2 / 35.0))
+    assert fov_check(exif, fov, 32, 16) is None
+    msg = fov_check(exif, 60.0, 32, 16)
+    assert "60.0 deg" in msg and f"{fov:.1f} deg" in msg and "24.0 mm wide sensor" in msg
+
+
+@pytest.mark.parametrize("photons, read", [(20000.0, 0.002), (2000.0, 0.005)])
+def test_camera_noise_is_estimated_from_the_image(photons, read):
+    """Poisson-Gaussian noise (`photons` per unit value, read noise `read`) on a smooth image (a ramp under a blob,
+    values 0.05-0.95) with a clipped corner: the shot coefficient 1 / photons and the read noise recovered, the mean
+    over 6 seeds within 3 of its standard errors (the seeds' spread / sqrt(6)) plus 5% (the binning's bias: each bin
+    spans a range of brightness)."""
+    h = w = 96
+    yy, xx = np.mgrid[0:h, 0:w] / h
+    base = 0.05 + 0.5 * xx + 0.4 * np.exp(-((xx - 0.6) ** 2 + (yy - 0.4) ** 2) / 0.05)
+    img = np.stack([base, 0.8 * base, 0.6 * base], -1)
+    img[:10, :10] = 2.0  # clipped by the camera: out of the estimate
+    est = []
+    for seed in range(6):
+        x = camera_encode(img, 1.0, np.random.default_rng(seed), photons, read)
+        n = camera_noise(x, ~np.any(x >= 1.0, axis=2))
+        est.append([n["shot"][1], n["read"][1]])
+    est = np.asarray(est)
+    mean, se = est.mean(axis=0), est.std(axis=0, ddof=1) / np.sqrt(len(est))
+    for m, s, true in zip(mean, se, (1.0 / photons, read)):
+        assert abs(m - true) <= 3 * s + 0.05 * true, (m, s, true)
+    assert camera_noise(x, np.zeros((h, w), bool)) is None  # nothing to fit it on
+
+
 def test_field_of_view_warning_names_both_numbers():
     """The 35 mm-equivalent focal length gives the horizontal field of view 2 atan(36 / 2f): a scene at 40 deg
     against a 28 mm lens (65.5 deg) is warned about with both numbers; 65 deg passes (within 5%)."""
@@ -211,7 +280,8 @@ def test_fit_cli_refuses_bad_photo_arguments(tmp_path):
 def test_fit_of_a_synthetic_photograph_recovers_the_medium_and_the_exposure(tmp_path):
     """A 16-bit sRGB photograph (exposure 0.37, Poisson-Gaussian noise, the light's highlight clipped) of the small
     backlit scene of tests/test_fit.py: the fit of sigma_t, g and the exposure finds each within 3 of its standard
-    errors of the truth (the photograph's noise is estimated from the image itself), and reports the visibility."""
+    errors of the truth (the photograph's noise is estimated from the image itself: the camera noise model), and
+    reports the visibility."""
     import jax
 
     import jaxfog
@@ -225,7 +295,8 @@ def test_fit_of_a_synthetic_photograph_recovers_the_medium_and_the_exposure(tmp_
     path = str(tmp_path / "photo.png")
     write_photo(path, code, bits=16)
     ph = read_photo(path)
-    view = make_view(_scene(), ph.image, "photo", 2, None, ph.valid, ph.noise_var)
+    assert not ph.lossy and ph.noise is not None  # a PNG: the camera noise model sets the weights
+    view = make_view(_scene(), ph.image, "photo", 2, None, ph.valid, ph.noise_var, ph.variance)
     res = fit_views([view], ["sigma_t", "g", "exposure"], {"sigma_t": 1.0, "g": 0.0, "exposure": 1.0},
                     FitConfig(spp=32, seed=0), log=lambda *_: None)
     assert res.success, res.messages
