@@ -24,6 +24,8 @@ Statistics (used by every render test; see `assert_statistically_equal`)
 
 from __future__ import annotations
 
+import struct
+
 import dataclasses
 import json
 from pathlib import Path
@@ -289,3 +291,50 @@ def trilinear_reference(grid: np.ndarray, u: np.ndarray) -> np.ndarray:
                 ix, iy, iz = ((i1 if d else i0)[k] for k, d in enumerate((dx, dy, dz)))
                 out = out + w * grid[iz, iy, ix].astype(np.float64)
     return out
+
+
+def write_dng(path, cfa, white: int = 4095, black: int = 0) -> None:
+    """A minimal uncompressed Bayer (RGGB) DNG 1.4 of the uint16 sensor values `cfa` `(H, W)` (LibRaw needs at least
+    ~22 px a side), white level `white`; its colour matrix makes the camera's RGB linear sRGB and its white balance
+    neutral, so LibRaw's linear sRGB output is the sensor values over `white` (the reference for the RAW decoder:
+    rawpy cannot write a RAW file, and a camera's file is megabytes)."""
+    h, w = cfa.shape
+    data = np.ascontiguousarray(cfa, '<u2').tobytes()
+    entries = []  # (tag, type, count, value bytes)
+    def add(tag, typ, vals):
+        fmt = {1: 'B', 2: 's', 3: 'H', 4: 'I', 5: 'II', 10: 'ii', 7: 'B'}[typ]
+        if typ == 2:
+            b = vals.encode() + b'\0'; entries.append((tag, typ, len(b), b)); return
+        if typ in (5, 10):
+            b = b''.join(struct.pack('<' + fmt, *v) for v in vals); entries.append((tag, typ, len(vals), b)); return
+        b = struct.pack('<%d%s' % (len(vals), fmt), *vals); entries.append((tag, typ, len(vals), b))
+    add(254, 4, [0]); add(256, 4, [w]); add(257, 4, [h]); add(258, 3, [16]); add(259, 3, [1]); add(262, 3, [32803])
+    add(271, 2, "jaxfog"); add(272, 2, "test")
+    add(273, 4, [0])  # strip offset, patched
+    add(274, 3, [1]); add(277, 3, [1]); add(278, 4, [h]); add(279, 4, [len(data)]); add(284, 3, [1])
+    add(33421, 3, [2, 2]); add(33422, 1, [0, 1, 1, 2])
+    add(50706, 1, [1, 4, 0, 0]); add(50707, 1, [1, 1, 0, 0]); add(50708, 2, "jaxfog test camera")
+    add(50714, 4, [black]); add(50717, 4, [white])
+    M = [3.2406, -1.5372, -0.4986, -0.9689, 1.8758, 0.0415, 0.0557, -0.2040, 1.0570]
+    add(50721, 10, [(int(round(m * 10000)), 10000) for m in M])  # ColorMatrix1: XYZ -> camera = linear sRGB
+    add(50728, 5, [(1, 1), (1, 1), (1, 1)])  # AsShotNeutral
+    add(50778, 3, [21])  # CalibrationIlluminant1 D65
+    entries.sort()
+    n = len(entries)
+    ifd_off = 8
+    extra_off = ifd_off + 2 + 12 * n + 4
+    extra = b''; body = []
+    for tag, typ, cnt, b in entries:
+        if len(b) <= 4:
+            body.append((tag, typ, cnt, b.ljust(4, b'\0')))
+        else:
+            if len(extra) % 2: extra += b'\0'
+            body.append((tag, typ, cnt, struct.pack('<I', extra_off + len(extra)))); extra += b
+    if len(extra) % 2: extra += b'\0'
+    data_off = extra_off + len(extra)
+    out = b'II*\0' + struct.pack('<I', ifd_off) + struct.pack('<H', n)
+    for tag, typ, cnt, b in body:
+        if tag == 273: b = struct.pack('<I', data_off)
+        out += struct.pack('<HHI', tag, typ, cnt) + b
+    out += struct.pack('<I', 0) + extra + data
+    open(path, 'wb').write(out)

@@ -188,6 +188,28 @@ def test_camera_noise_is_estimated_from_the_image(photons, read):
     assert camera_noise(x, np.zeros((h, w), bool)) is None  # nothing to fit it on
 
 
+def test_raw_file_decodes_to_its_linear_sensor_values(tmp_path):
+    """A tiny DNG (tests/helpers.py: RGGB, sensor values 1000 / 2000 / 3000 of 4095 on the left half and half of them
+    on the right, neutral white balance, a colour matrix that makes the camera's RGB linear sRGB) decoded by LibRaw:
+    every pixel away from the step between the halves and from the border (4 px: the demosaicing's neighbourhood) is
+    its sensor value / 4095 per channel (demosaicing a constant per channel changes nothing) to 1e-4 (the colour
+    matrix's rationals), linear in the sensor value, nothing masked."""
+    pytest.importorskip("rawpy", reason="camera RAW files need the `photo` extra (rawpy); the test extra has it")
+    from helpers import write_dng
+
+    cfa = np.zeros((64, 96), np.uint16)
+    for (dy, dx), v in {(0, 0): 1000, (0, 1): 2000, (1, 0): 2000, (1, 1): 3000}.items():
+        cfa[dy::2, dx::2] = v
+    cfa[:, 48:] //= 2
+    path = str(tmp_path / "tiny.dng")
+    write_dng(path, cfa)
+    ph = read_photo(path)
+    assert ph.bits == 16 and "raw" in ph.curve and ph.valid.all() and not ph.lossy
+    want = np.where(np.arange(96)[None, :, None] < 48, 1.0, 0.5) * np.array([1000.0, 2000.0, 3000.0]) / 4095.0
+    err = np.abs(ph.image - np.broadcast_to(want, ph.image.shape))
+    assert np.max(err[4:-4, np.r_[4:44, 52:92]]) < 1e-4
+
+
 def test_field_of_view_warning_names_both_numbers():
     """The 35 mm-equivalent focal length gives the horizontal field of view 2 atan(36 / 2f): a scene at 40 deg
     against a 28 mm lens (65.5 deg) is warned about with both numbers; 65 deg passes (within 5%)."""
