@@ -326,3 +326,42 @@ def test_fit_of_a_synthetic_photograph_recovers_the_medium_and_the_exposure(tmp_
         se = res.uncertainty[n]["se"]
         assert abs(res.params[n] - true) <= 3.0 * se, (n, res.params[n], true, se)
     assert res.visibility["mor"] == pytest.approx(K / res.params["sigma_t"])
+
+
+# slow tier: two fits of 10-40 s each (compiling their programs)
+@pytest.mark.slow
+@pytest.mark.parametrize("names, gains", [
+    (["sigma_t", "g", "exposure:rgb"], {"exposure[r]": 0.45, "exposure[g]": 0.37, "exposure[b]": 0.30}),
+    (["sigma_t", "g", "exposure@1", "exposure@2"], {"exposure@1": 0.37, "exposure@2": 0.74}),
+], ids=["white_balance", "per_image"])
+def test_fit_of_photographs_recovers_white_balance_and_per_image_exposures(tmp_path, names, gains):
+    """The camera's other parameters through the same solver: an unknown white balance (`exposure:rgb`, one factor per
+    channel) on one 16-bit photograph, and one exposure per photograph (`exposure@1`, `exposure@2`) on two photographs
+    of the same view a stop apart (each rendered with its own key and noise). Every parameter within 3 of its
+    standard errors of the truth."""
+    import jax
+
+    import jaxfog
+    from fitting.params import apply, check_names
+    from fitting.problem import make_view
+    from fitting.solver import FitConfig, fit_views
+    from test_fit import TRUTH, _scene
+
+    names = check_names(names)
+    per_image = "exposure@1" in gains
+    views = []
+    for i in range(2 if per_image else 1):
+        img = np.asarray(jaxfog.render(apply(_scene(), TRUTH), jax.random.key(991 + i), 2048, estimator="detached"))
+        wb = (np.full(3, gains[f"exposure@{i + 1}"]) if per_image
+              else np.array([gains["exposure[r]"], gains["exposure[g]"], gains["exposure[b]"]]))
+        code = camera_encode(img, wb, np.random.default_rng(5 + i), photons=20000.0, read_noise=0.001)
+        path = str(tmp_path / f"photo{i}.png")
+        write_photo(path, code, bits=16)
+        ph = read_photo(path)
+        views.append(make_view(_scene(), ph.image, f"photo{i}", 2, None, ph.valid, ph.noise_var, ph.variance))
+    init = {"sigma_t": 1.0, "g": 0.0, **{n: 1.0 for n in names if n.startswith("exposure")}}
+    res = fit_views(views, names, init, FitConfig(spp=32, seed=0), log=lambda *_: None)
+    assert res.success, res.messages
+    for n, true in {**TRUTH, **gains}.items():
+        se = res.uncertainty[n]["se"]
+        assert abs(res.params[n] - true) <= 3.0 * se, (n, res.params[n], true, se)
