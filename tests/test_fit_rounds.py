@@ -245,3 +245,23 @@ def test_non_finite_passes_end_the_fit_with_a_clear_error():
     assert state.failures == 2 and state.phase == "approach" and len(state.messages) == 2
     with pytest.raises(FitError, match="non-finite"):
         approach_round(prob, state, cfg, lambda *a: None)
+
+
+def test_same_basin_needs_two_explained_attempts_within_their_joint_99_percent_region():
+    """Two attempts (checks within chi2_max) whose estimates differ by d with covariances C1, C2 are one basin when
+    d^T (C1 + C2)^-1 d <= chi2_99(k) (k = 2: 9.21): d = (0.3, 0) with C = 0.01 I each reads 4.5 (one basin), d = (0.5,
+    0) reads 12.5 (two); an attempt the model does not explain (check above chi2_max) joins none."""
+    from types import SimpleNamespace as NS
+
+    from fitting.rounds import Check
+    from fitting.solver import Attempt, same_basin
+
+    def attempt(y, worst):
+        step = NS(delta=np.zeros(2), cov=0.01 * np.eye(2))
+        return Attempt(np.asarray(y, float), step, None, Check([worst], [worst] * 3, worst))
+
+    assert same_basin((attempt([0.0, 0.0], 3.0), attempt([0.3, 0.0], 4.0)), 6.0) == 0
+    assert same_basin((attempt([0.0, 0.0], 3.0), attempt([0.5, 0.0], 4.0)), 6.0) is None
+    assert same_basin((attempt([0.0, 0.0], 9.0), attempt([0.3, 0.0], 4.0)), 6.0) is None
+    assert same_basin((attempt([0.0, 0.0], 3.0), attempt([0.3, 0.0], 9.0)), 6.0) is None
+    assert same_basin((attempt([5.0, 0.0], 3.0), attempt([0.0, 0.0], 3.0), attempt([0.3, 0.0], 4.0)), 6.0) == 1
