@@ -273,6 +273,9 @@ def test_batched_traversal_equals_the_per_ray_walk(torus):
 
 
 # ---------------------------------------------------------------------------------------------------- renders
+# slow tier: a 20-s render program of its own (cold compilation cache, 2 cores); the default run checks the mesh's hits
+# against brute force (test_bvh_hits_equal_brute_force) and a closed mesh around a light (no leaks)
+@pytest.mark.slow
 def test_tessellated_sphere_renders_like_the_analytic_sphere():
     """A diffuse sphere under a point light (no fog, single scattering), analytic vs an inscribed UV sphere of
     ~9k flat triangles, with the same keys (common random numbers: the same pixel positions).

@@ -299,6 +299,9 @@ def test_fit_cli_refuses_bad_photo_arguments(tmp_path):
     assert not os.path.exists(out)
 
 
+# slow tier: a fit (20-40 s with a cold compilation cache on 2 cores); the default run checks the photograph's parts
+# (decoding, masks, noise, exposure parameters, visibility) and the solver's fits in tests/test_fit.py
+@pytest.mark.slow
 def test_fit_of_a_synthetic_photograph_recovers_the_medium_and_the_exposure(tmp_path):
     """A 16-bit sRGB photograph (exposure 0.37, Poisson-Gaussian noise, the light's highlight clipped) of the small
     backlit scene of tests/test_fit.py: the fit of sigma_t, g and the exposure finds each within 3 of its standard
