@@ -473,20 +473,24 @@ def _at_edge(names, y) -> list[str]:
             if np.isfinite(SPECS[n].lo) and np.isfinite(SPECS[n].hi) and abs(float(y[i])) > 6.0]
 
 
-def _best_attempt(attempts) -> Attempt | None:
+def _best_attempt(attempts, chi2_max: float = float("inf")) -> Attempt | None:
     """The attempt whose model check reads lowest (None before any); among the attempts in its basin (estimates
-    within 3 combined standard errors of its own, in the unconstrained coordinates) the one with the smallest
-    largest standard error: two solves of one basin are one solution, and the better-measured one is kept."""
+    within 3 combined standard errors of its own, in the unconstrained coordinates) and explained as well as it
+    (check within `chi2_max`, or no worse than its own) the one with the smallest largest standard error: two solves
+    of one basin are one solution, and the better-measured one is kept; an attempt the model check refuses is
+    never kept over one it accepts (a droplet fit's refusal at 9.6x the noise replaced its own basin's 2.0x)."""
     if not attempts:
         return None
     best = min(attempts, key=lambda a: a.check.worst)
     y = best.y0 + best.step.delta
+    limit = max(chi2_max, best.check.worst)
 
     def same_basin(a: Attempt) -> bool:
         d = a.y0 + a.step.delta - y
         return bool(np.all(np.abs(d) <= 3.0 * np.sqrt(np.abs(np.diag(a.step.cov) + np.diag(best.step.cov)))))
 
-    return min((a for a in attempts if same_basin(a)), key=lambda a: float(np.max(np.diag(a.step.cov))))
+    return min((a for a in attempts if a is best or (same_basin(a) and a.check.worst <= limit)),
+               key=lambda a: float(np.max(np.diag(a.step.cov))))
 
 
 def summarise(problem: Problem, state: FitState, cfg: FitConfig) -> FitResult:
@@ -495,7 +499,7 @@ def summarise(problem: Problem, state: FitState, cfg: FitConfig) -> FitResult:
     names = problem.names
     k = len(names)
     wall = time.perf_counter() - state.t0
-    best = _best_attempt(state.attempts)
+    best = _best_attempt(state.attempts, cfg.chi2_max)
     search = None if state.scan is None else _search_summary(names, state.scan)
     if search is not None:
         search["starts"] = [_values(names, y) for y in state.starts[:max(len(state.attempts), 1)]]

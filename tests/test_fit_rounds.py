@@ -265,3 +265,24 @@ def test_same_basin_needs_two_explained_attempts_within_their_joint_99_percent_r
     assert same_basin((attempt([0.0, 0.0], 9.0), attempt([0.3, 0.0], 4.0)), 6.0) is None
     assert same_basin((attempt([0.0, 0.0], 3.0), attempt([0.3, 0.0], 9.0)), 6.0) is None
     assert same_basin((attempt([5.0, 0.0], 3.0), attempt([0.0, 0.0], 3.0), attempt([0.3, 0.0], 4.0)), 6.0) == 1
+
+
+def test_best_attempt_never_keeps_a_refused_attempt_over_an_accepted_one():
+    """Among attempts of one basin the better-measured one is kept, but only among those the model check accepts (or
+    no worse than the best): an attempt at 9.6x the noise with smaller standard errors does not replace one at 2.5x
+    (the fit would then refuse its own basin's accepted solution)."""
+    from types import SimpleNamespace as NS
+
+    from fitting.rounds import Check
+    from fitting.solver import Attempt, _best_attempt
+
+    def attempt(y, worst, var):
+        step = NS(delta=np.zeros(2), cov=var * np.eye(2))
+        return Attempt(np.asarray(y, float), step, None, Check([worst], [worst] * 3, worst))
+
+    accepted, sharper_refused, sharper_accepted = (attempt([0.0, 0.0], 2.5, 0.04), attempt([0.1, 0.0], 9.6, 0.01),
+                                                   attempt([0.1, 0.0], 4.0, 0.01))
+    assert _best_attempt((accepted, sharper_refused), 6.0) is accepted
+    assert _best_attempt((accepted, sharper_accepted), 6.0) is sharper_accepted
+    assert _best_attempt((accepted, sharper_refused, sharper_accepted), 6.0) is sharper_accepted
+    assert _best_attempt(()) is None
