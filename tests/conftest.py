@@ -46,7 +46,7 @@ def pytest_xdist_auto_num_workers(config):
 
 
 # ------------------------------------------------------------------------------------------------ fixtures
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def stats():
     """The statistical helpers as one namespace (render_keys, mean_and_se, assert_statistically_equal, N_KEYS)."""
 
@@ -63,13 +63,13 @@ def stats():
     return ns
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def camera_spec():
     """Factory for `CameraSpec` (plain floats; `.build()` gives a `jf.Camera`, `.rays(n)` float64 reference rays)."""
     return CameraSpec
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def floor_scene():
     """Factory: a diffuse floor seen from `FLOOR_CAMERA`, lit by `lights`, optional `medium`, `max_depth`.
 
@@ -83,7 +83,7 @@ def floor_scene():
     return build
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def fog():
     """Factory for a `HomogeneousMedium` from plain values (RGB or scalar)."""
 
