@@ -485,11 +485,11 @@ def _best_attempt(attempts, chi2_max: float = float("inf")) -> Attempt | None:
     y = best.y0 + best.step.delta
     limit = max(chi2_max, best.check.worst)
 
-    def same_basin(a: Attempt) -> bool:
+    def in_basin(a: Attempt) -> bool:  # per coordinate; `same_basin` (above) asks more: the joint 99% region
         d = a.y0 + a.step.delta - y
         return bool(np.all(np.abs(d) <= 3.0 * np.sqrt(np.abs(np.diag(a.step.cov) + np.diag(best.step.cov)))))
 
-    return min((a for a in attempts if a is best or (same_basin(a) and a.check.worst <= limit)),
+    return min((a for a in attempts if a is best or (in_basin(a) and a.check.worst <= limit)),
                key=lambda a: float(np.max(np.diag(a.step.cov))))
 
 
