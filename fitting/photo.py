@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .params import FitError
+from .problem import box_mean, second_difference_variance
 
 RAW_EXTENSIONS = (".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf", ".rw2", ".pef",
                   ".srw", ".erf", ".kdc", ".3fr", ".iiq", ".x3f")
@@ -295,28 +296,17 @@ def _read_raw(path: str, curve: str | None) -> Photo:
 # ---- the camera's noise, from the image itself ------------------------------------------------------------------
 
 
-def _second_difference_variance(x: np.ndarray) -> np.ndarray:
-    """Per pixel of `x` `(H, W, C)`, the mean over both directions of `(x[i-1] - 2 x[i] + x[i+1])^2 / 6`: for
-    independent noise of variance v an estimate of v (a linear trend cancels); NaN on the border."""
-    v = np.full(x.shape, np.nan)
-    v[1:-1, 1:-1] = 0.5 * ((x[1:-1, 2:] - 2 * x[1:-1, 1:-1] + x[1:-1, :-2]) ** 2
-                           + (x[2:, 1:-1] - 2 * x[1:-1, 1:-1] + x[:-2, 1:-1]) ** 2) / 6.0
-    return v
-
-
 def _local_mean(x: np.ndarray) -> np.ndarray:
     """The 3 x 3 box mean of `x` `(H, W, C)` (at the border, over the pixels that exist)."""
-    from .problem import box_mean
-
     return box_mean(x, 1)
 
 
 def _median_to_mean() -> float:
-    """median / mean of `_second_difference_variance` under independent Gaussian noise (it is a scaled sum of two
+    """median / mean of `second_difference_variance` under independent Gaussian noise (it is a scaled sum of two
     correlated squares, not a named distribution): simulated once, 512 x 512 values, fixed seed (the ratio's own
     standard error ~0.002)."""
     if not _MEDIAN_TO_MEAN:
-        v = _second_difference_variance(np.random.default_rng(12345).standard_normal((514, 514, 1)))[1:-1, 1:-1]
+        v = second_difference_variance(np.random.default_rng(12345).standard_normal((514, 514, 1)))[1:-1, 1:-1]
         _MEDIAN_TO_MEAN.append(float(np.median(v) / np.mean(v)))
     return _MEDIAN_TO_MEAN[0]
 
@@ -348,7 +338,7 @@ def camera_noise(lin: np.ndarray, valid: np.ndarray) -> dict | None:
         return None
     diag = np.full(x.shape, np.nan)  # the brightness from the four diagonal neighbours: no pixel of the second
     diag[1:-1, 1:-1] = 0.25 * (x[:-2, :-2] + x[:-2, 2:] + x[2:, :-2] + x[2:, 2:])  # differences, so binning by it
-    v, mu = _second_difference_variance(x)[inner], diag[inner]  # does not select pixels by their own noise
+    v, mu = second_difference_variance(x)[inner], diag[inner]  # does not select pixels by their own noise
     m = _median_to_mean()
     bins = int(np.clip(n // 200, 4, 16))
     shot, read = [], []

@@ -55,12 +55,11 @@ def pool(img: np.ndarray, f: int) -> np.ndarray:
     return img.reshape(H // f, f, W // f, f, C).mean(axis=(1, 3))
 
 
-def block_noise(img: np.ndarray, f: int) -> np.ndarray:
-    """Per-pixel noise variance of `pool(img, f)`, estimated from `img` alone.
-
-    For independent pixel noise of variance v, the second difference `x[i-1] - 2 x[i] + x[i+1]` has variance 6 v and
-    cancels a linear trend: its square / 6, averaged over both directions and over each f x f block, estimates v
-    there, and the pooled pixel has v / f^2. Image curvature (edges) adds to it: the estimate errs toward more noise."""
+def second_difference_variance(img: np.ndarray) -> np.ndarray:
+    """Per pixel of `img` `(H, W, C)`, the noise variance estimated from its second differences: for independent
+    noise of variance v, `x[i-1] - 2 x[i] + x[i+1]` has variance 6 v and cancels a linear trend; its square / 6,
+    averaged over the directions the pixel has both neighbours in (NaN where it has none). Image curvature (edges)
+    adds to it."""
     x = np.asarray(img, np.float64)
     v = np.zeros_like(x)
     cnt = np.zeros_like(x)
@@ -70,8 +69,15 @@ def block_noise(img: np.ndarray, f: int) -> np.ndarray:
     if x.shape[0] >= 3:
         v[1:-1] += (x[2:] - 2 * x[1:-1] + x[:-2]) ** 2 / 6.0
         cnt[1:-1] += 1
-    v = np.where(cnt > 0, v / np.maximum(cnt, 1), np.nan)
-    fill = np.nanmean(v) if np.any(cnt > 0) else 0.0
+    return np.where(cnt > 0, v / np.maximum(cnt, 1), np.nan)
+
+
+def block_noise(img: np.ndarray, f: int) -> np.ndarray:
+    """Per-pixel noise variance of `pool(img, f)`, estimated from `img` alone: `second_difference_variance` averaged
+    over each f x f block (a pixel without one: the image's mean), and the pooled pixel has v / f^2. The estimate errs
+    toward more noise at edges."""
+    v = second_difference_variance(img)
+    fill = np.nanmean(v) if np.any(np.isfinite(v)) else 0.0
     v = np.where(np.isfinite(v), v, fill)
     return pool(v, f) / (f * f)
 
