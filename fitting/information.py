@@ -18,7 +18,7 @@ from .params import SPECS
 
 WELL = 0.02
 """A combination with a standard error at most this (relative units: 2%, or 0.02 in g) is "well determined": the
-accuracy the fit is asked for (issue 16)."""
+accuracy the foreign suite asks of a fit (`fitting.suite.tolerance`)."""
 
 WEAK = 0.1
 """Above this standard error a combination is "weakly determined" (the fit's own `max_se` threshold, 10% / 0.1)."""

@@ -37,9 +37,9 @@ HEIGHT_TRUTHS = {
                    " than the scene files' (sigma_0 0.5, H 0.8)"),
 }
 HEIGHT_VIEWS = ("height_fog_ground", "height_fog_above")
-"""Height-fog targets (issue 15): the view along the ground and the view from above pin H together."""
+"""Height-fog targets: the view along the ground and the view from above pin H together."""
 MODEL_GROUPS = {
-    # issue 14: chromatic media and the new phase functions; 32 x 32 views, max_depth 3 (docs/results/fit_models.md)
+    # chromatic media and the phase functions beyond HG; 32 x 32 views, max_depth 3 (docs/results/fit_models.md)
     "rgb_haze": ({"sigma_t[r]": 0.3, "sigma_t[g]": 0.5, "sigma_t[b]": 0.8, "g": 0.5, "albedo": 0.9},
                  "chromatic haze, extinction rising from red to blue, HG g 0.5", ("chromatic_fit_side", "chromatic_fit_low")),
     "droplet_8um": ({"diameter": 8.0, "sigma_t": 0.3, "albedo": 0.9}, "fog of 8 um droplets (Jendersie & d'Eon 2023)",
@@ -47,15 +47,15 @@ MODEL_GROUPS = {
     "two_term": ({"g1": 0.8, "g2": -0.4, "w": 0.7, "sigma_t": 0.5, "albedo": 0.9},
                  "two-term HG fog: forward lobe 0.8 (weight 0.7), backward lobe -0.4", ("twoterm_fit_backlit", "twoterm_fit_side")),
 }
-"""Targets of the chromatic and phase-function fits (issue 14), seeds after the height-fog ones. A view added to a
+"""Targets of the chromatic and phase-function fits, seeds after the height-fog ones. A view added to a
 group after its seeds were given is a `(view, seed)` pair with a seed after all the others (`droplet_fit_halo`: the
 narrow view of the halo that pins the droplet diameter, docs/results/fit_models.md), so no other target's seed moves."""
 MESH_GROUPS = {
-    # issue 18: a triangle mesh (a bumpy torus of 21,504 triangles, BVH) in the benchmark medium
+    # a triangle mesh (a bumpy torus of 21,504 triangles, BVH) in the benchmark medium
     "mesh_mid": ({"sigma_t": 0.5, "g": 0.6, "albedo": 0.9}, "the benchmark medium around a triangle mesh",
                  ("mesh_fog",)),
 }
-"""Targets of the mesh-scene fit (issue 18, docs/results/mesh.md), seeds after the phase-function ones."""
+"""Targets of the mesh-scene fit (docs/results/mesh.md), seeds after the phase-function ones."""
 
 
 def main(argv=None) -> int:

@@ -201,7 +201,9 @@ def _run(family, seed, views, names, start, truth, cfg, case=None) -> dict:
                 "wall_s": time.perf_counter() - t0}
     rows = {n: {"truth": truth[n], "estimate": r.params[n], **r.uncertainty[n]} for n in names if n in truth}
     return {"family": family, "case": case, "seed": seed, "start": start, "params": rows, "success": r.success,
-            "messages": r.messages, "chi2": r.chi2, "rounds": r.rounds, "wall_s": time.perf_counter() - t0}
+            "messages": r.messages, "chi2": r.chi2, "rounds": r.rounds, "wall_s": time.perf_counter() - t0,
+            "last_round": {k: v for k, v in (r.history[-1] if r.history else {}).items()
+                           if k in ("phase", "batches", "step_se", "worst_se", "quality")}}
 
 
 def summarise(lines: list[dict]) -> dict:

@@ -1,4 +1,4 @@
-"""Fits of issue 14's models on small scenes: a chromatic fit recovers its three channels within its own noise, and a
+"""Fits of the chromatic and phase-function models on small scenes: a chromatic fit recovers its three channels within its own noise, and a
 grey model on a chromatic target reports failure (as tests/test_fit.py's failures are reported); the droplet
 diameter: a narrow view of the halo around the light tells a fit more about it than the wide backlit view, and a fit
 of d on the shipped halo target recovers it within 3 of its standard errors.
@@ -91,7 +91,7 @@ def test_grey_model_on_a_chromatic_target_reports_failure(rgb_fit, grey_fit):
     assert res.chi2 > 2.0 * rgb_fit.chi2, (res.chi2, rgb_fit.chi2)
 
 
-# ------------------------------------------------------------------ the droplet diameter from the halo (issue 14)
+# ------------------------------------------------------------------ the droplet diameter from the halo
 DROPLET_TRUTH = {"diameter": 8.0, "sigma_t": 0.3, "albedo": 0.9}
 # The halo of droplet_fit_halo without its floor (out of view), single scattering, 8 x 8 px: a narrow camera (fov 4)
 # and a wide one (fov 40, droplet_fit_backlit's) on the same spot light and fog. One compiled program for both.

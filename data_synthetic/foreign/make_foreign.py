@@ -43,7 +43,7 @@ EXTRA_SEEDS = {"spot_sideways_power__spot_sideways_near": SEED0 + 14, "box_fog__
                "glass_mirror__glass_mirror_low": SEED0 + 23, "mesh_torus__mesh_side": SEED0 + 24,
                "mesh_torus__mesh_low": SEED0 + 25}
 """Views added after the first 13 targets (seeds SEED0 + 1 ... + 13 in order) keep the earlier targets' seeds. The
-cases from `room_forward` on are the fit-solver issue's table: a start far from a forward-scattering truth in the
+cases from `room_forward` on are the hard starts and scenes: a start far from a forward-scattering truth in the
 point-lit room, thin forward fog from backward-leaning starts, denser fog, a glass and a mirror sphere in the beam,
 and a triangle mesh, each in two views but the room."""
 
