@@ -135,7 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m fitting.fit", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("inputs", nargs="+", help="SCENE.json TARGET.exr [MORE_TARGETS.exr | SCENE2.json TARGET2.exr ...]")
-    p.add_argument("--fit", nargs="+", default=["sigma_t", "g"], help=f"parameters to fit: {', '.join(SPECS)}")
+    p.add_argument("--fit", nargs="+", default=["sigma_t", "g"],
+                   help=f"parameters to fit: {', '.join(SPECS)}; or density alone: every voxel of a grid medium "
+                        f"(python -m fitting.grid)")
     p.add_argument("--init", nargs="*", default=[],
                    help="starting values, e.g. sigma_t=0.3 g=0.0 (default: the scene file's): a hint for the global "
                         "search, which scans the parameters' plausible range whatever the start")
@@ -179,6 +181,15 @@ def main(argv=None) -> int:
         return e.code if isinstance(e.code, int) else 2
     from jaxfog.tools import LaunchError, launch_of
 
+    if "density" in args.fit:  # every voxel of a grid medium: fitting.grid's fit, with this command's options
+        try:
+            grid_argv = density_argv(args, argv if argv is not None else sys.argv[1:])
+        except FitError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        from . import grid
+
+        return grid.main(grid_argv)
     try:  # a multi-process fit's options, checked before any work (None: one process)
         launch = launch_of(args.coordinator, args.num_processes, args.process_id)
     except LaunchError as e:
@@ -201,6 +212,33 @@ def main(argv=None) -> int:
     except (FitError, LimitError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+
+
+DENSITY_OPTIONS = ("--out", "--seed", "--downscale", "--spp", "--fit", "--quiet")
+"""The options `--fit density` passes on to `fitting.grid` (the others belong to the fit of a few parameters)."""
+
+
+def density_argv(args, argv: list[str]) -> list[str]:
+    """`fitting.grid`'s arguments for `--fit density`: the scene / target pairs, `--out` (RESULT.json; the grid
+    beside it as RESULT_density.vol and RESULT_density_se.vol), `--seed`, `--downscale` and, where given, `--spp`
+    (each render of the voxel fit; its own default, 8, otherwise). Refuses, before any work, another parameter
+    beside `density` and the options of the few-parameter fit."""
+    if args.fit != ["density"]:
+        raise FitError(f"--fit {' '.join(args.fit)}: density (every voxel of a grid medium) is fitted alone; "
+                       f"fit the other parameters with the grid fixed, or use python -m fitting.grid")
+    given = {a.split("=", 1)[0] for a in argv if a.startswith("--")}
+    other = sorted(given - set(DENSITY_OPTIONS))
+    if other:
+        raise FitError(f"--fit density takes only {', '.join(DENSITY_OPTIONS)} of this command's options, not "
+                       f"{', '.join(other)} (python -m fitting.grid --help: the voxel fit's own options)")
+    if len(args.inputs) % 2:
+        raise FitError("--fit density: expected pairs SCENE.json TARGET.exr (one scene per target)")
+    out = [*args.inputs, "--out", args.out, "--seed", str(args.seed)]
+    if args.downscale is not None:
+        out += ["--downscale", str(args.downscale)]
+    if "--spp" in given:
+        out += ["--spp", str(args.spp)]
+    return out
 
 
 def _fit_as_one_of_many(args, launch) -> int:

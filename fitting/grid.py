@@ -1,7 +1,9 @@
 """Fit every voxel of a density grid to images from several views (a `GridMedium` scene per view).
 
     python -m fitting.grid SCENE1.json TARGET1.exr [SCENE2.json TARGET2.exr ...] --out OUT \\
-        [--iterations 200] [--spp 8] [--downscale F] [--start 0.3] [--seed 0] [--smooth auto | WEIGHT]
+        [--iterations 200] [--spp 8] [--downscale F] [--start 0.3] [--seed 0] [--smooth auto | WEIGHT] \\
+        [--holdout SCENE.json TARGET.exr ...]
+    python -m fitting.fit SCENE1.json TARGET1.exr ... --fit density --out RESULT.json   # the same fit
 
 Every scene holds the same grid medium (shape and box; the first scene's grid is only its shape: the fit starts
 from a constant grid, `--start` 1/scene unit, or the mean extinction the first view's brightness suggests).
@@ -21,7 +23,9 @@ fifth over the iterations. Per-voxel standard errors: the Gauss-Newton informati
 Writes `OUT/RESULT_density.vol` (the fitted grid, in the units of the scenes' grid: with their `scale` it
 renders the fitted fog), `OUT/RESULT_density_se.vol` (its standard error, same units),
 `OUT/RESULT.json` (per iteration: loss, chi^2, weight, seconds; the volume error when the scenes' grid is the
-truth, `--truth`) and `OUT/slices.png` (the middle slices of the fit, its standard error and the truth).
+truth, `--truth`; each `--holdout` view's relative RMS error and chi^2 per pixel with the starting and the fitted
+grid) and `OUT/slices.png` (the middle slices of the fit, its standard error and the truth). With `--out NAME.json`
+the files are NAME.json, NAME_density.vol, NAME_density_se.vol and NAME_slices.png.
 """
 
 from __future__ import annotations
@@ -186,6 +190,19 @@ def fit_grid(views, *, iterations: int, spp: int, start: float, seed: int, smoot
     return density, density * se_theta, history
 
 
+def heldout_error(view, density, spp: int, key) -> dict:
+    """How well a grid predicts a view the fit did not see: `view` `(scene, target, var)` (`load_views`) rendered
+    with `density` (`(nz, ny, nx)`, 1/scene unit) at `spp`; the relative RMS error `sqrt(mean((I - T)^2)) / mean(T)`
+    and the chi^2 per pixel value over the target's and the render's noise (1 for a grid that explains the view)."""
+    scene, target, var = view
+    img, var_r = jaxfog.render(with_density(scene, jnp.log(jnp.asarray(density, jnp.float32))), key, spp,
+                               variance=True)
+    d = np.asarray(img, np.float64) - np.asarray(target, np.float64)
+    noise = np.asarray(var, np.float64) + np.asarray(var_r, np.float64)
+    return {"relative_rms": float(np.sqrt(np.mean(d * d)) / max(float(np.mean(target)), 1e-30)),
+            "chi2": float(np.mean(d * d / np.maximum(noise, 1e-30))), "spp": spp}
+
+
 def _neighbour_count(shape, axis):
     """Per voxel: how many neighbours it has along `axis` (1 at the ends, 2 inside, 0 for a single layer)."""
     n = shape[axis]
@@ -224,7 +241,9 @@ def write_slices(path, fit, se, truth) -> None:
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m fitting.grid", description=__doc__.split("\n\n")[0])
     ap.add_argument("inputs", nargs="+", help="SCENE.json TARGET.exr [SCENE2.json TARGET2.exr ...]")
-    ap.add_argument("--out", required=True, help="output folder")
+    ap.add_argument("--out", required=True,
+                    help="output folder (RESULT.json, RESULT_density.vol, ... in it), or NAME.json (NAME_density.vol, "
+                         "NAME_density_se.vol and NAME_slices.png beside it)")
     ap.add_argument("--iterations", type=int, default=200)
     ap.add_argument("--spp", type=int, default=8, help="samples per pixel of each render (two per view a step)")
     ap.add_argument("--downscale", type=int, default=None, help="fit at 1/F of the targets' size (default: 16 px)")
@@ -232,6 +251,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--smooth", default="auto", help="the prior's weight, or 'auto' (discrepancy principle)")
     ap.add_argument("--truth", action="store_true", help="report the volume error against the scenes' own grid")
+    ap.add_argument("--holdout", nargs=2, action="append", default=[], metavar=("SCENE.json", "TARGET.exr"),
+                    help="a view the fit does not see: its error with the starting and the fitted grid is reported "
+                         "(repeatable)")
+    ap.add_argument("--holdout-spp", type=int, default=256, help="samples per pixel of a held-out view's render")
     return ap
 
 
@@ -244,8 +267,12 @@ def check_args(args) -> list[tuple[str, str]]:
         for p in (s, t):
             if not os.path.isfile(p):
                 raise ValueError(f"{p}: not found")
-    if args.iterations < 1 or args.spp < 1:
-        raise ValueError("--iterations and --spp must be >= 1")
+    if args.iterations < 1 or args.spp < 1 or args.holdout_spp < 1:
+        raise ValueError("--iterations, --spp and --holdout-spp must be >= 1")
+    for s, t in args.holdout:
+        for p in (s, t):
+            if not os.path.isfile(p):
+                raise ValueError(f"--holdout {p}: not found")
     if not (args.start > 0 and math.isfinite(args.start)):
         raise ValueError(f"--start {args.start}: expected a finite value > 0 (1/scene unit)")
     if args.smooth != "auto":
@@ -258,30 +285,53 @@ def check_args(args) -> list[tuple[str, str]]:
     return pairs
 
 
+def output_paths(out: str) -> dict:
+    """The files a fit writes: in the folder `out`, or beside `out` when it names a `.json` file."""
+    if out.endswith(".json"):
+        stem = out[:-5]
+        return {"result": out, "density": f"{stem}_density.vol", "se": f"{stem}_density_se.vol",
+                "slices": f"{stem}_slices.png"}
+    return {"result": os.path.join(out, "RESULT.json"), "density": os.path.join(out, "RESULT_density.vol"),
+            "se": os.path.join(out, "RESULT_density_se.vol"), "slices": os.path.join(out, "slices.png")}
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         pairs = check_args(args)
         views = load_views(pairs, args.downscale)
+        held = load_views([tuple(h) for h in args.holdout], args.downscale) if args.holdout else []
+        if held and held[0][0].medium.density.shape != views[0][0].medium.density.shape:
+            raise ValueError("--holdout: its grid's shape differs from the fitted views'")
     except (ValueError, jaxfog.SceneError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    paths = output_paths(args.out)
     truth = np.asarray(views[0][0].medium.density)[..., 0] * float(views[0][0].medium.scale) if args.truth else None
     print(f"fitting a {'x'.join(map(str, truth.shape if truth is not None else views[0][0].medium.density.shape[:3]))}"
           f" grid to {len(views)} view(s), {args.iterations} iterations")
     density, se, history = fit_grid(views, iterations=args.iterations, spp=args.spp, start=args.start,
                                     seed=args.seed, smooth=args.smooth, truth=truth)
-    os.makedirs(args.out, exist_ok=True)
+    heldout = []
+    for i, ((s_path, t_path), view) in enumerate(zip(args.holdout, held)):
+        key = jax.random.fold_in(jax.random.key(args.seed), 2 * 10 ** 6 + i)
+        start = np.full(density.shape, args.start, np.float32)
+        rec = {"scene": s_path, "target": t_path, "start": heldout_error(view, start, args.holdout_spp, key),
+               "fit": heldout_error(view, density, args.holdout_spp, key)}
+        heldout.append(rec)
+        print(f"held-out {os.path.basename(t_path)}: relative RMS error {rec['start']['relative_rms']:.3f} (start) -> "
+              f"{rec['fit']['relative_rms']:.3f} (fit), chi2/px {rec['start']['chi2']:.2f} -> {rec['fit']['chi2']:.2f}")
+    os.makedirs(os.path.dirname(os.path.abspath(paths["result"])), exist_ok=True)
     lo, hi = (np.asarray(b) for b in views[0][0].medium.bounds)
     scale = float(views[0][0].medium.scale)
-    jaxfog.write_vol(os.path.join(args.out, "RESULT_density.vol"), density / max(scale, 1e-30), (lo, hi))
-    jaxfog.write_vol(os.path.join(args.out, "RESULT_density_se.vol"), se / max(scale, 1e-30), (lo, hi))
-    text = json.dumps({"views": pairs, "history": history}, indent=1)
-    atomic_write(os.path.join(args.out, "RESULT.json"), lambda tmp: open(tmp, "w").write(text))
-    write_slices(os.path.join(args.out, "slices.png"), density, se, truth)
+    jaxfog.write_vol(paths["density"], density / max(scale, 1e-30), (lo, hi))
+    jaxfog.write_vol(paths["se"], se / max(scale, 1e-30), (lo, hi))
+    text = json.dumps({"views": pairs, "heldout": heldout, "history": history}, indent=1)
+    atomic_write(paths["result"], lambda tmp: open(tmp, "w").write(text))
+    write_slices(paths["slices"], density, se, truth)
     last = history[-1]
     print(f"done: chi2/px {last['chi2']:.3f}" + (f", volume error {last['volume_error']:.3f}" if truth is not None
-                                                  else "") + f"; wrote {args.out}/RESULT_density.vol")
+                                                  else "") + f"; wrote {paths['density']}")
     return 0
 
 

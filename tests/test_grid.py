@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import equinox as eqx
@@ -334,7 +335,7 @@ def test_a_small_grid_fit_finds_a_known_blob(tmp_path):
     constant grid. Checks what this fit achieves (docs/results/grid.md): the volume error (relative L2 over the
     voxels) falls by at least a quarter, and the fitted blob's voxels are over twice as dense as the haze's. It
     does not check that the voxels reach the truth (measured: 0.74 -> 0.46 after 240 iterations)."""
-    from fitting.grid import fit_grid, load_views
+    from fitting.grid import fit_grid, heldout_error, load_views
 
     res, box = 4, ((-1.0, -0.5, -1.0), (1.0, 1.5, 1.0))
     lo, hi = np.array(box[0]), np.array(box[1])
@@ -363,6 +364,61 @@ def test_a_small_grid_fit_finds_a_known_blob(tmp_path):
     assert history[-1]["volume_error"] <= 0.75 * history[0]["volume_error"], (history[0], history[-1])
     blob = truth > 0.8
     assert density[blob].mean() > 2 * density[~blob].mean()
+    # a view from above, which the fit did not see, is predicted better by the fitted grid than by the start (the
+    # same key for both renders: their difference is not the renders' noise)
+    data = json.loads(json.dumps(base))
+    data["camera"].update(origin=[0.2, 4.5, 0.4], target=[0, 0.5, 0], up=[0, 0, -1], width=8, height=8)
+    (tmp_path / "top.json").write_text(json.dumps(data))
+    img = jf.render(jf.load_scene(tmp_path / "top.json").scene, jax.random.key(200), 2048)
+    jf.write_exr(tmp_path / "top.exr", np.asarray(img))
+    held = load_views([(str(tmp_path / "top.json"), str(tmp_path / "top.exr"))], 1)[0]
+    key = jax.random.key(7)
+    start = heldout_error(held, np.full(truth.shape, 0.3, np.float32), 512, key)
+    fit = heldout_error(held, density, 512, key)
+    assert fit["relative_rms"] < start["relative_rms"], (start, fit)
+
+
+def test_fit_density_passes_its_options_to_the_voxel_fit_and_refuses_the_others():
+    """`python -m fitting.fit ... --fit density` is `fitting.grid`'s fit: the pairs, --out, --seed, --downscale and a
+    given --spp pass on; another parameter beside density, or an option of the few-parameter fit, is refused with
+    one line before any work (exit 2)."""
+    from fitting import fit
+
+    def argv_of(cmd):
+        return fit.density_argv(fit.build_parser().parse_args(cmd), cmd)
+
+    cmd = ["a.json", "a.exr", "b.json", "b.exr", "--fit", "density", "--out", "r.json", "--seed", "3", "--spp", "16"]
+    assert argv_of(cmd) == ["a.json", "a.exr", "b.json", "b.exr", "--out", "r.json", "--seed", "3", "--spp", "16"]
+    assert "--spp" not in argv_of(cmd[:-2]), "the voxel fit's own spp unless one is given"
+    pair = ["a.json", "a.exr", "--out", "r.json"]
+    for extra, words in [(["--fit", "density", "g"], "fitted alone"),
+                         (["--fit", "density", "--init", "sigma_t=0.3"], "--init"),
+                         (["--fit", "density", "--budget", "5"], "--budget")]:
+        with pytest.raises(fit.FitError, match=words):
+            argv_of(pair + extra)
+    with pytest.raises(fit.FitError, match="pairs"):
+        argv_of(["a.json", "a.exr", "b.exr", "--fit", "density", "--out", "r.json"])
+
+
+def test_fit_density_refuses_a_scene_without_a_grid(tmp_path, capsys):
+    """A scene whose medium is not a grid: one line naming the file and the medium, exit 2, nothing written."""
+    from fitting import fit
+
+    scene = REPO / "data_synthetic" / "scenes" / "spot_fog.json"
+    target = REPO / "data_synthetic" / "targets" / "spot_fog__mid.exr"
+    out = tmp_path / "r.json"
+    assert fit.main([str(scene), str(target), "--fit", "density", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "spot_fog.json" in err and "HomogeneousMedium" in err and "grid" in err
+    assert not out.exists()
+
+
+def test_grid_fit_output_paths_beside_a_result_file_or_in_a_folder():
+    from fitting.grid import output_paths
+
+    assert output_paths("out/fog.json") == {"result": "out/fog.json", "density": "out/fog_density.vol",
+                                            "se": "out/fog_density_se.vol", "slices": "out/fog_slices.png"}
+    assert output_paths("out")["density"] == os.path.join("out", "RESULT_density.vol")
 
 
 def test_a_grid_sampled_from_height_fog_has_its_optical_depths():
