@@ -1,0 +1,76 @@
+"""Write the voxel-fit target set: a 4^3 blob over thin haze seen from four sides, and a fifth view from above held
+out of the fit, each rendered by jaxfog with the truth grid.
+
+    python data_synthetic/make_grid_fit.py     # rewrites data_synthetic/grid_fit/
+
+Writes `grid_fit/truth.vol` (the grid: 1/scene unit, x fastest, the box `[-1, -0.5, -1]` to `[1, 1.5, 1]`), one scene
+per view (`front`, `side`, `back`, `left`, and `top`, the held-out one: spot_fog's room, a point light above the
+box, max_depth 3, albedo 0.9, HG g 0.5, 8 x 8 px) and its target at 2048 spp (`VIEW.exr`, seed 100 + its index;
+the header records the spp and the truth file). Fit and report the held-out error with
+
+    python -m fitting.grid data_synthetic/grid_fit/{front,side,back,left}.{json,exr} --out OUT --truth \\
+        --holdout data_synthetic/grid_fit/top.json data_synthetic/grid_fit/top.exr
+
+(the four pairs written out: `front.json front.exr side.json side.exr ...`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+OUT = HERE / "grid_fit"
+RES = 4
+BOX = ((-1.0, -0.5, -1.0), (1.0, 1.5, 1.0))
+CAMERAS = {  # name: (origin, target, up)
+    "front": ([0, 0.6, 4.0], [0, 0.5, 0], [0, 1, 0]),
+    "side": ([4.0, 0.8, 0.3], [0, 0.5, 0], [0, 1, 0]),
+    "back": ([0.3, 0.9, -4.0], [0, 0.5, 0], [0, 1, 0]),
+    "left": ([-4.0, 0.7, -0.5], [0, 0.5, 0], [0, 1, 0]),
+    "top": ([0.2, 4.5, 0.4], [0, 0.5, 0], [0, 0, -1]),
+}
+SPP = 2048
+
+
+def blob_grid(res: int = RES) -> np.ndarray:
+    """`(res, res, res)` (z, y, x) at texel centres: haze 0.1 plus a Gaussian blob of peak 1.5 (1/scene unit)."""
+    lo, hi = np.array(BOX[0]), np.array(BOX[1])
+    axes = [lo[i] + (np.arange(res) + 0.5) / res * (hi[i] - lo[i]) for i in range(3)]
+    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    return (0.1 + 1.5 * np.exp(-((x - 0.3) ** 2 + (y - 0.6) ** 2 + (z + 0.2) ** 2) / (2 * 0.35 ** 2))).astype(
+        np.float32)
+
+
+def scene_of(name: str) -> dict:
+    base = json.loads((HERE / "scenes" / "spot_fog.json").read_text())
+    base["name"] = f"grid_fit_{name}"
+    base["description"] = (f"Voxel-fit view '{name}': a 4^3 blob over haze (truth.vol) in spot_fog's room, a point "
+                           f"light above; written by data_synthetic/make_grid_fit.py")
+    base["integrator"]["max_depth"] = 3
+    base["medium"] = {"type": "grid", "file": "truth.vol", "albedo": 0.9, "g": 0.5}
+    base["lights"] = [{"type": "point", "position": [0, 2.2, 0.5], "intensity": 20}]
+    origin, target, up = CAMERAS[name]
+    base["camera"].update(origin=origin, target=target, up=up, width=8, height=8)
+    return base
+
+
+def main() -> None:
+    import jax
+
+    import jaxfog as jf
+
+    OUT.mkdir(exist_ok=True)
+    jf.write_vol(OUT / "truth.vol", blob_grid(), BOX)
+    for i, name in enumerate(CAMERAS):
+        (OUT / f"{name}.json").write_text(json.dumps(scene_of(name), indent=2) + "\n")
+        img = jf.render(jf.load_scene(OUT / f"{name}.json").scene, jax.random.key(100 + i), SPP)
+        jf.write_exr(OUT / f"{name}.exr", np.asarray(img), {"jaxfog:spp": SPP, "jaxfog:truth_grid": "truth.vol",
+                                                           "jaxfog:seed": 100 + i})
+        print(f"{OUT / name}.exr: mean {float(np.mean(img)):.4g}")
+
+
+if __name__ == "__main__":
+    main()
