@@ -56,7 +56,8 @@ def spd_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
     return x if np.all(np.isfinite(x)) else None
 
 
-def weights(problem: Problem, u: np.ndarray | None, power: float, smoothing: int) -> np.ndarray:
+def weights(problem: Problem, u: np.ndarray | None, power: float, smoothing: int,
+            render_spp: int | None = None) -> np.ndarray:
     """Per-element weights `w = v^(-power / 4)` (so `W = w^2 = v^(-power / 2)`), normalised to mean square 1, from the
     renders' per-sample variances `u` of EARLIER passes (independent of the residuals they weigh).
 
@@ -69,12 +70,29 @@ def weights(problem: Problem, u: np.ndarray | None, power: float, smoothing: int
         return np.ones(problem.n)
     u = np.where(problem.valid > 0, u, np.nan)  # a masked pixel's zero variance is no neighbour's
     v = np.concatenate([box_mean(x, smoothing).ravel() for x in problem.split(u)])
+    if render_spp:
+        v = _view_levels(problem, v, problem.target_variance(np.nan_to_num(u)) + np.nan_to_num(u) / render_spp)
     pos = v[np.isfinite(v) & (v > 0)]
     if pos.size == 0:
         return np.ones(problem.n)
     v = np.where(np.isfinite(v), np.maximum(v, VAR_FLOOR * float(np.median(pos))), np.inf)
     w = v ** (-0.25 * power)
     return w / math.sqrt(np.mean(w ** 2))
+
+
+def _view_levels(problem: Problem, v: np.ndarray, total: np.ndarray) -> np.ndarray:
+    """`v` (the renders' per-sample variances, smoothed) rescaled per view to the mean of `total` (the residual's
+    expected variance: the target's plus an estimate pass's render): the pattern within a view from the renders,
+    its level from the target's noise as well. For a jaxfog target `total` is proportional to `v` and nothing
+    changes; for another renderer's target the views' levels follow their own noise."""
+    out, at = v.copy(), 0
+    for view in problem.views:
+        sl = slice(at, at + view.target.size)
+        ok = np.isfinite(v[sl]) & (problem.valid[sl] > 0)
+        if np.any(ok) and np.mean(v[sl][ok]) > 0:
+            out[sl] = v[sl] * (np.mean(total[sl][ok]) / np.mean(v[sl][ok]))
+        at += view.target.size
+    return out
 
 
 VAR_FLOOR = 0.1

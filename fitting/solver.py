@@ -249,7 +249,8 @@ def approach_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
     (pa, pb), _ = base
     u_now = 0.5 * (pa.u + pb.u)
     u = u_now if state.u is None else 0.5 * (state.u + u_now)
-    w = weights(problem, state.u, cfg.weight_power, cfg.weight_smoothing)
+    w = weights(problem, state.u, cfg.weight_power, cfg.weight_smoothing,
+                _render_spp(cfg))
     delta = damped_step(pa, pb, w, lam)
     if delta is None:
         raise FitError(f"the images do not change with the fitted parameters at {_values(problem.names, y)}: "
@@ -265,8 +266,14 @@ def approach_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
                records=records)
     if done:
         return state.replace(**nxt, trial=None, phase="estimate",
-                             w=weights(problem, u, cfg.weight_power, cfg.weight_smoothing))
+                             w=weights(problem, u, cfg.weight_power, cfg.weight_smoothing, _render_spp(cfg)))
     return state.replace(**nxt, trial=y + trust_region(delta, cfg.max_step_u))
+
+
+def _render_spp(cfg: FitConfig) -> int:
+    """The samples of one estimate pass (both halves): the render's share of the residual's variance in the weights'
+    view levels (`rounds.weights`)."""
+    return 2 * cfg.estimate_factor * cfg.spp
 
 
 LAMBDA_START, LAMBDA_MIN, LAMBDA_SMALL, LAMBDA_MAX = 1e-2, 1e-4, 0.1, 1e4

@@ -149,6 +149,27 @@ def test_weights_are_equal_without_variances_and_floored_with_them():
     assert np.all(np.isfinite(weights(prob, np.full(N, np.nan), 0.5, 1)))
 
 
+def test_weights_take_each_views_level_from_its_target_noise_and_their_pattern_from_the_renders():
+    """Two views with the same render variances: where the targets' noise is proportional to the renders' (a jaxfog
+    target) the view levels do not change the weights; where the second view's target is 4x less noisy than the
+    first's, its weights rise by the ratio of the views' expected residual variances to the power 1/8 (power 1/2:
+    `W = w^2 = v^-1/4`), and within each view the pattern stays the renders'."""
+    prob = _FakeProblem(n_views=2)
+    rng = np.random.default_rng(3)
+    u = rng.uniform(0.5, 2.0, N)
+    base = weights(prob, u, 0.5, 0)
+    prob.target_variance = lambda uu: uu / 100.0           # proportional: the levels change nothing
+    np.testing.assert_allclose(weights(prob, u, 0.5, 0, render_spp=64), base, rtol=1e-12)
+    half = N // 2
+    tv = np.concatenate([np.full(half, 0.1), np.full(N - half, 0.025)])
+    prob.target_variance = lambda uu: tv
+    w = weights(prob, u, 0.5, 0, render_spp=10 ** 9)        # the target's noise alone sets each view's level
+    ratio = (w[half:] / base[half:]).mean() / (w[:half] / base[:half]).mean()
+    assert ratio == pytest.approx((4.0 * u[half:].mean() / u[:half].mean()) ** 0.125, rel=1e-6)
+    for sl in (slice(0, half), slice(half, N)):            # the pattern within a view: the renders'
+        np.testing.assert_allclose(w[sl] / base[sl], (w[sl] / base[sl]).mean(), rtol=1e-9)
+
+
 def test_model_check_reads_one_for_noise_and_more_for_a_misfit():
     """median(z^2) / median(chi^2_1) over 600 elements: its standard error is ~0.1 for pure noise."""
     prob = _FakeProblem()
