@@ -71,7 +71,8 @@ def weights(problem: Problem, u: np.ndarray | None, power: float, smoothing: int
     u = np.where(problem.valid > 0, u, np.nan)  # a masked pixel's zero variance is no neighbour's
     v = np.concatenate([box_mean(x, smoothing).ravel() for x in problem.split(u)])
     if render_spp:
-        v = _view_levels(problem, v, problem.target_variance(np.nan_to_num(u)) + np.nan_to_num(u) / render_spp)
+        smooth = np.nan_to_num(v)  # the target's variance follows the renders' where it is known from them
+        v = _view_levels(problem, v, problem.target_variance(smooth) + smooth / render_spp)
     pos = v[np.isfinite(v) & (v > 0)]
     if pos.size == 0:
         return np.ones(problem.n)

@@ -157,9 +157,11 @@ def test_weights_take_each_views_level_from_its_target_noise_and_their_pattern_f
     prob = _FakeProblem(n_views=2)
     rng = np.random.default_rng(3)
     u = rng.uniform(0.5, 2.0, N)
-    base = weights(prob, u, 0.5, 0)
     prob.target_variance = lambda uu: uu / 100.0           # proportional: the levels change nothing
-    np.testing.assert_allclose(weights(prob, u, 0.5, 0, render_spp=64), base, rtol=1e-12)
+    for smoothing in (0, 1):
+        np.testing.assert_allclose(weights(prob, u, 0.5, smoothing, render_spp=64), weights(prob, u, 0.5, smoothing),
+                                   rtol=1e-12)
+    base = weights(prob, u, 0.5, 0)
     half = N // 2
     tv = np.concatenate([np.full(half, 0.1), np.full(N - half, 0.025)])
     prob.target_variance = lambda uu: tv
