@@ -44,7 +44,7 @@ def torus_mesh(nu: int = NU, nv: int = NV, major: float = 0.55, minor: float = 0
 
 
 def main(argv=None) -> int:
-    from jaxfog._mesh import write_ply
+    from jaxfog import write_ply
 
     v, f = torus_mesh()
     OUT.parent.mkdir(parents=True, exist_ok=True)

@@ -157,7 +157,7 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="*", default=None, help="case names to render (default all)")
     args = ap.parse_args(argv)
     import jaxfog
-    from jaxfog._mitsuba import import_mitsuba
+    from jaxfog.tools import import_mitsuba
 
     mi = import_mitsuba("scalar_rgb")
     renderer = f"mitsuba {mi.__version__} {mi.variant()}"
