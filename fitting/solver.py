@@ -249,8 +249,7 @@ def approach_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
     (pa, pb), _ = base
     u_now = 0.5 * (pa.u + pb.u)
     u = u_now if state.u is None else 0.5 * (state.u + u_now)
-    w = weights(problem, state.u, cfg.weight_power, cfg.weight_smoothing,
-                _render_spp(cfg))
+    w = weights(problem, state.u, cfg.weight_power, cfg.weight_smoothing, _render_spp(cfg))
     delta = damped_step(pa, pb, w, lam)
     if delta is None:
         raise FitError(f"the images do not change with the fitted parameters at {_values(problem.names, y)}: "
