@@ -96,7 +96,7 @@ def family_fit(name: str, seed: int) -> dict:
     from .fit import auto_downscale
     from .params import apply, check_names, scene_values
     from .problem import make_view
-    from .solver import FitConfig, fit_views
+    from .solver import FitConfig
 
     view_names, ranges, fixed = FAMILIES[name]
     rng = np.random.default_rng([seed, sum(map(ord, name))])
