@@ -41,10 +41,9 @@ def case_rows(case: dict, downscales: list[int], spp: int) -> list[dict]:
 
     import jaxfog
     from fitting import suite
-    from fitting.params import to_unconstrained
+    from fitting.params import jacobian_to_params, to_unconstrained
     from fitting.problem import Problem, make_view
     from fitting.rounds import model_covariance, normal_matrix, weights
-    from fitting.solver import _to_params
 
     names, rows = case["fit"], []
     y = np.asarray(to_unconstrained(names, {n: case["truth"][n] for n in names}), np.float64)
@@ -63,7 +62,8 @@ def case_rows(case: dict, downscales: list[int], spp: int) -> list[dict]:
             base = 0.5 * (a.u + b.u) if kind == "render" else var_t
             w = weights(problem, base, power, 1)
             A_inv = np.linalg.inv(normal_matrix(a.J, b.J, w))
-            se = np.sqrt(np.diag(_to_params(names, y, model_covariance(A_inv, J, w, var_t, problem.pixel_of))))
+            d = jacobian_to_params(names, y)  # d(parameter) / d(unconstrained coordinate)
+            se = np.abs(d) * np.sqrt(np.diag(model_covariance(A_inv, J, w, var_t, problem.pixel_of)))
             for n, s in zip(names, se):
                 tol = suite.tolerance(n, case["truth"][n])
                 rows.append({"case": case["name"], "fit_px": f"{views[0].target.shape[1]}x{views[0].target.shape[0]}",
