@@ -157,8 +157,32 @@ def normal_equations(pa: Pass, pb: Pass, w: np.ndarray) -> tuple[np.ndarray, np.
     return g, normal_matrix(pa.J, pb.J, w), A1
 
 
+QUALITY_MIN = 0.5
+"""The smallest relative eigenvalue of the two-key normal matrix (`Step.quality`) along which the covariances trust
+it, and below which the estimate does not stop: at 0.5 the Jacobians' noise equals their signal along that
+direction. Measured over the coverage study (docs/results/fit_solver/coverage.md, 156 fits): accepted fits whose
+last step read 0.5-1 had errors of rms 0.92-1.11 standard errors; the three below 0.5 (0.33-0.36) rms 2.14, one a
+mesh fit 3.9 and 2.9 standard errors off; at 0.085 a one-view spot fit was 2.5-3.8 off."""
+
+
+def floored(cov: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """`cov`, raised along every direction where it is below `floor` to the floor (in the coordinates that whiten
+    `floor`, eigenvalues clipped at 1). The residual-based covariance is an estimate of the renders' variance plus
+    the target's; one below the renders' own variance (which their many samples measure well) is the residuals'
+    sampling luck with heavy-tailed pixels, not information (measured: a droplet fit with a robust standard error of
+    sigma_t 0.0030 against the renders' 0.0043 was 4.5 of it from the truth)."""
+    try:
+        L = np.linalg.cholesky(0.5 * (floor + floor.T))
+    except np.linalg.LinAlgError:
+        return cov
+    Li = np.linalg.inv(L)
+    lam, V = np.linalg.eigh(Li @ (0.5 * (cov + cov.T)) @ Li.T)
+    out = L @ (V * np.maximum(lam, 1.0)) @ V.T @ L.T
+    return 0.5 * (out + out.T)
+
+
 def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixel_of: np.ndarray,
-                 quality_min: float = 0.25) -> Step | None:
+                 quality_min: float = QUALITY_MIN) -> Step | None:
     """One Gauss-Newton step from two independent halves: `delta = -A^-1 (Ja^T W eb + Jb^T W ea) / 2`,
     `A = sym(Ja^T W Jb)`. No Jacobian multiplies the residual from its own samples (a Jacobian and a residual from
     the same paths are correlated, which biases the fixed point), and `A` carries no `Var[J]`. Where the Jacobians'
@@ -177,7 +201,7 @@ def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixe
     robust = robust_covariance(A_inv, J, w, r, pixel_of, leverage=True)
     cov_r = model_covariance(A_inv, J, w, var_render, pixel_of)
     cov_t = model_covariance(A_inv, J, w, var_target, pixel_of)
-    return Step(delta, A, robust, cov_r, cov_t, r, J, var_render, quality, robust)
+    return Step(delta, A, floored(robust, cov_r), cov_r, cov_t, r, J, var_render, quality, robust)
 
 
 UNRESOLVED = 1e-6
@@ -190,8 +214,7 @@ def _information(A2: np.ndarray, A1: np.ndarray, quality_min: float) -> tuple[fl
     """`(quality, A_cov)`: the smallest eigenvalue of the two-key `A2` relative to the positive definite `A1`
     (-inf where A1 is not), and the covariances' normal matrix: `A2` along the directions it resolves (relative
     eigenvalue at least `quality_min`), `UNRESOLVED` times `A1` along the others. Below `quality_min` the Jacobians'
-    noise is 3x their signal or more, and the inverse of so noisy an eigenvalue is no standard error (measured: a
-    one-view spot fit at relative eigenvalue 0.085 after 8 passes was 2.5-3.8 of A2's standard errors off)."""
+    noise exceeds their signal, and the inverse of so noisy an eigenvalue is no standard error (`QUALITY_MIN`)."""
     try:
         L = np.linalg.cholesky(0.5 * (A1 + A1.T))
     except np.linalg.LinAlgError:

@@ -30,8 +30,8 @@ import numpy as np
 from .information import fisher_report, instead, relative_scales
 from .params import SPECS, FitError, jacobian_to_params, to_unconstrained
 from .problem import Pass, Problem, View
-from .rounds import (Check, Step, chi2_quantile, damped_step, gauss_newton, mahalanobis, model_check, trust_region,
-                     two_key_loss, weights)
+from .rounds import (QUALITY_MIN, Check, Step, chi2_quantile, damped_step, gauss_newton, mahalanobis, model_check,
+                     trust_region, two_key_loss, weights)
 from .search import Scan, check_brightness, distinct_starts, global_search
 from .visibility import visibility
 
@@ -337,12 +337,6 @@ def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
         return state.replace(passes=passes, step=step, phase="check")
     return state.replace(passes=passes, step=step)
 
-
-QUALITY_MIN = 0.25
-"""The estimate stops only once its two-key normal matrix holds at least a quarter of the halves' own in every
-direction (`rounds.Step.quality`; the step is solved with it from there on): before, the Jacobians' noise is 3x
-their signal along some direction, and the unbiased matrix's inverse is as noisy as a step can bear (measured on a
-glass-and-mirror scene: 0.34 after 8 estimate passes, -0.08 to 0.29 before)."""
 
 SIGNIFICANT = 3.0
 """An estimate step beyond the linear range sends the fit back to the approach only when it is longer than this many

@@ -11,8 +11,8 @@ import pytest
 
 from fitting.params import FitError, SPECS
 from fitting.problem import Pass
-from fitting.rounds import (chi2_quantile, damped_step, gauss_newton, mahalanobis, model_check, model_covariance,
-                            robust_covariance, trust_region, two_key_loss, weights)
+from fitting.rounds import (chi2_quantile, damped_step, floored, gauss_newton, mahalanobis, model_check,
+                            model_covariance, robust_covariance, trust_region, two_key_loss, weights)
 from fitting.search import Scan, distinct_starts, halton, param_range, profile_linear, search_box
 from fitting.solver import FitConfig
 
@@ -65,8 +65,8 @@ def _linear_problem(rng, sd=0.05, channel_corr=True):
 def test_gauss_newton_recovers_a_linear_problem_and_its_covariance_is_honest():
     """Over 400 independent pass pairs: the step's mean is y_star within 4 standard errors of the mean, and its
     spread matches both covariances (the robust one with its leverage correction, and the noise model's) within 15%
-    in variance (the standard error of a variance over 400 draws is ~7%); the reported one is the robust one
-    (`fitting/study.py` measures both on whole fits)."""
+    in variance (the standard error of a variance over 400 draws is ~7%); the reported one is the robust one, never
+    below the renders' own along any direction (`fitting/study.py` measures both on whole fits)."""
     rng = np.random.default_rng(0)
     J, y_star, half = _linear_problem(rng)
     w = np.ones(N)
@@ -77,13 +77,30 @@ def test_gauss_newton_recovers_a_linear_problem_and_its_covariance_is_honest():
         steps.append(st.delta)
         covs.append(st.cov_robust)
         model.append(st.cov_render)
-        np.testing.assert_array_equal(st.cov, st.cov_robust)
+        np.testing.assert_array_equal(st.cov, floored(st.cov_robust, st.cov_render))
     steps = np.asarray(steps)
     emp = np.cov(steps.T)
     sem = np.sqrt(np.diag(emp) / len(steps))
     assert np.all(np.abs(steps.mean(axis=0) - y_star) <= 4 * sem)
     np.testing.assert_allclose(np.diag(np.mean(covs, axis=0)), np.diag(emp), rtol=0.15)
     np.testing.assert_allclose(np.diag(np.mean(model, axis=0)), np.diag(emp), rtol=0.15)
+
+
+def test_floored_raises_a_covariance_only_where_it_is_below_the_floor():
+    """Along the floor's whitened directions: a covariance above the floor everywhere is returned as it is, one below
+    it everywhere becomes the floor, and one below along a single direction is raised along that one only (its
+    variance along the other direction kept)."""
+    rng = np.random.default_rng(5)
+    F = np.array([[2.0, 0.5], [0.5, 1.0]])
+    L = np.linalg.cholesky(F)
+    np.testing.assert_allclose(floored(3.0 * F, F), 3.0 * F, rtol=1e-12)
+    np.testing.assert_allclose(floored(0.2 * F, F), F, rtol=1e-12)
+    Q, _ = np.linalg.qr(rng.normal(size=(2, 2)))
+    C = L @ (Q * np.array([0.3, 4.0])) @ Q.T @ L.T
+    out = floored(C, F)
+    Li = np.linalg.inv(L)
+    np.testing.assert_allclose(np.sort(np.linalg.eigvalsh(Li @ out @ Li.T)), [1.0, 4.0], rtol=1e-10)
+    np.testing.assert_allclose(Q[:, 1] @ (Li @ out @ Li.T) @ Q[:, 1], 4.0, rtol=1e-10)
 
 
 def test_model_covariance_counts_a_pixels_channels_as_one_draw():
