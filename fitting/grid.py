@@ -17,8 +17,10 @@ The prior's weight is chosen by the data (`--smooth auto`, the discrepancy princ
 (the residual's mean square over the render noise plus the target's pixel-to-pixel noise), averaged over 20
 iterations, is compared with 1 from a third of the iterations on; below it the fit is reading noise and the weight
 grows 2x, above 2 it is too smooth to explain the images and the weight halves. Adam's step decays linearly to a
-fifth over the iterations. Per-voxel standard errors: the Gauss-Newton information's diagonal,
-`diag(J^T W J)`, estimated by Hutchinson's method from random-sign vector-Jacobian products, plus the prior's.
+fifth over the iterations. Per-voxel standard errors: the diagonal of the inverse of the Gauss-Newton information
+`sym(Ja^T W Jb)` (two independent renders per view, forward mode over every voxel) plus the prior's Hessian, for
+grids up to `DENSE_SE_MAX` voxels; for larger ones the inverse of its diagonal, estimated by Hutchinson's method
+from random-sign vector-Jacobian products (a lower bound: it ignores the voxels' correlations).
 
 Writes `OUT/RESULT_density.vol` (the fitted grid, in the units of the scenes' grid: with their `scale` it
 renders the fitted fog), `OUT/RESULT_density_se.vol` (its standard error, same units),
@@ -132,22 +134,132 @@ def make_step(views, spp: int):
     return step
 
 
+@eqx.filter_jit
+def _hutchinson_probe(theta, scene, var, z, k, spp: int):
+    """`J^T W^(1/2) z` of one view's render, `W` the inverse of the target's noise `var` plus the render's own (as
+    in the fit's data term; module level: compiled once per view shape and spp)."""
+    def f(th):
+        img, v = jaxfog.render(with_density(scene, th), k, spp, variance=True)
+        noise = jax.lax.stop_gradient(var + v)
+        return jnp.sum(img * z / jnp.sqrt(noise + 1e-3 * jnp.mean(noise) + 1e-12))
+
+    return jax.grad(f)(theta)
+
+
 def hutchinson_diagonal(views, theta, spp: int, key, probes: int = 8):
     """`diag(J^T W J)` of the data term at `theta` (per voxel), from `probes` random-sign vector-Jacobian products:
     `E[(J^T W^(1/2) z)^2] = diag(J^T W J)` for `z` of independent +-1 entries (one compiled program for all)."""
-
-    @eqx.filter_jit
-    def probe(theta, scene, var, z, k):
-        w_sqrt = 1.0 / jnp.sqrt(var + 1e-3 * jnp.mean(var) + 1e-12)
-        return jax.grad(lambda th: jnp.sum(jaxfog.render(with_density(scene, th), k, spp) * w_sqrt * z))(theta)
-
     diag = jnp.zeros_like(theta)
     for p in range(probes):
         for i, (scene, target, var) in enumerate(views):
             k = jax.random.fold_in(jax.random.fold_in(key, p), i)
             z = jnp.where(jax.random.bernoulli(jax.random.fold_in(k, 1), shape=target.shape), 1.0, -1.0)
-            diag = diag + probe(theta, scene, var, z, k) ** 2
+            diag = diag + _hutchinson_probe(theta, scene, var, z, k, spp) ** 2
     return diag / probes
+
+
+DENSE_SE_MAX = 512
+"""Grids of at most this many voxels get standard errors from the whole information matrix (`dense_information`:
+one forward-mode column per voxel, in chunks of `DENSE_CHUNK`); larger ones from its diagonal (Hutchinson), which
+ignores the voxels' correlations and so understates each voxel's standard error."""
+
+SE_SPP_MIN = 64
+"""Samples per pixel (at least) of each render behind the standard errors: once per fit, and the two-key
+information's own noise falls with them."""
+
+MAX_POLISH = 0.5
+"""The largest change of a voxel's log-density in the closing Gauss-Newton step (a factor e^0.5 = 1.65): the step
+corrects the noise Adam's last iterations leave, and a larger one means the linearisation is not to be trusted."""
+
+DENSE_CHUNK = 64
+"""Voxels per forward-mode pass of `dense_information` (tangents carried together through one render)."""
+
+
+@eqx.filter_jit
+def _columns(theta, scene, basis, k, spp: int):
+    """`(J (pixels, len(basis)), image, variance)` of one render: forward mode along each row of `basis` (module
+    level: compiled once per view shape, chunk and spp)."""
+    def f(th):
+        img, v = jaxfog.render(with_density(scene, th), k, spp, variance=True)
+        return img, jax.lax.stop_gradient(v)
+
+    def jvp(t):
+        (img, v), (dimg, _) = jax.jvp(f, (theta,), (t.reshape(theta.shape),))
+        return dimg.ravel(), img.ravel(), v.ravel()
+
+    J, img, v = jax.vmap(jvp)(basis)
+    return J.T, img[0], v[0]
+
+
+def dense_information(views, theta, spp: int, key) -> tuple[np.ndarray, np.ndarray]:
+    """`(F, g)`: the data term's Gauss-Newton information `sym(Ja^T W Jb)` over all voxels, `(n, n)` (`n` voxels,
+    log-density coordinates), and its gradient `(Ja^T W eb + Jb^T W ea) / 2`, `(n,)`, from two renders per view with
+    independent keys (`e` = render - target; a one-key `J^T W J` also carries the Jacobians' Monte Carlo noise,
+    which reads as information, and a one-key gradient multiplies a residual by the Jacobian of its own paths),
+    `W` the inverse of the target's noise plus one render's. Forward mode, one column per voxel. F's negative
+    eigenvalues (noise) clipped to 0."""
+    n = int(np.prod(theta.shape))
+    F, g = np.zeros((n, n)), np.zeros(n)
+    eye = np.eye(n, dtype=np.float32)
+    for i, (scene, target, var) in enumerate(views):
+        halves = []
+        for h in range(2):
+            k = jax.random.fold_in(jax.random.fold_in(key, i), h)
+            parts = [_columns(theta, scene, jnp.asarray(eye[c:c + DENSE_CHUNK]), k, spp)
+                     for c in range(0, n, DENSE_CHUNK)]
+            J = np.concatenate([np.asarray(p[0], np.float64) for p in parts], axis=1)
+            e = np.asarray(parts[0][1], np.float64) - np.asarray(target, np.float64).ravel()
+            halves.append((J, e, np.asarray(parts[0][2], np.float64)))
+        (Ja, ea, va), (Jb, eb, vb) = halves
+        noise = np.asarray(var, np.float64).ravel() + 0.5 * (va + vb)
+        w = 1.0 / (noise + 1e-3 * np.mean(noise) + 1e-12)
+        M = Ja.T @ (w[:, None] * Jb)
+        F += 0.5 * (M + M.T)
+        g += 0.5 * (Ja.T @ (w * eb) + Jb.T @ (w * ea))
+    lam, V = np.linalg.eigh(F)
+    return (V * np.maximum(lam, 0.0)) @ V.T, g
+
+
+def prior_hessian(shape, weight: float) -> np.ndarray:
+    """The Hessian of `weight * neighbour_penalty` (a quadratic: `2 weight` times the grid's graph Laplacian)."""
+    n = int(np.prod(shape))
+    H = np.zeros((n, n))
+    idx = np.arange(n).reshape(shape)
+    for a in range(3):
+        i = np.moveaxis(idx, a, 0)
+        for p, q in zip(i[:-1].ravel(), i[1:].ravel()):
+            H[p, p] += 1.0
+            H[q, q] += 1.0
+            H[p, q] -= 1.0
+            H[q, p] -= 1.0
+    return 2.0 * weight * H
+
+
+def dense_gauss_newton(views, theta, spp: int, key, weight: float) -> tuple[np.ndarray, np.ndarray]:
+    """`(delta, cov)`: the Gauss-Newton step of the whole objective (data term plus `weight` times the neighbour
+    penalty) from `theta`, `-(F + H)^-1 (g + H theta)` with `(F, g)` of `dense_information` and `H` the prior's
+    Hessian (each coordinate at most `MAX_POLISH` in log-density), and the covariance `(F + H)^-1` of the
+    log-density. For grids up to `DENSE_SE_MAX` voxels."""
+    shape = tuple(theta.shape)
+    F, g = dense_information(views, theta, spp, key)
+    H = prior_hessian(shape, weight)
+    cov = np.linalg.pinv(F + H, hermitian=True)
+    th = np.asarray(theta, np.float64).ravel()
+    delta = np.clip(-cov @ (g + H @ th), -MAX_POLISH, MAX_POLISH)
+    return delta.reshape(shape), cov
+
+
+def voxel_se(views, theta, spp: int, key, weight: float) -> tuple[np.ndarray, str]:
+    """Per-voxel standard error of the log-density and how it was computed: the diagonal of the inverse of the whole
+    information plus the prior's Hessian for grids up to `DENSE_SE_MAX` voxels ("dense"), else the inverse of its
+    diagonal ("diagonal": a lower bound)."""
+    shape = tuple(theta.shape)
+    if int(np.prod(shape)) <= DENSE_SE_MAX:
+        _, cov = dense_gauss_newton(views, theta, spp, key, weight)
+        return np.sqrt(np.maximum(np.diag(cov), 0.0)).reshape(shape), "dense"
+    info = np.asarray(hutchinson_diagonal(views, theta, spp, key))
+    prior_diag = 2.0 * weight * sum(_neighbour_count(shape, a) for a in range(3))
+    return 1.0 / np.sqrt(np.maximum(info, 0.0) + prior_diag), "diagonal"
 
 
 # --------------------------------------------------------------------------------------------------- the fit
@@ -183,11 +295,29 @@ def fit_grid(views, *, iterations: int, spp: int, start: float, seed: int, smoot
             log(f"  iteration {it}: chi2/px {mean_chi2:.3f} (mean of {WINDOW}), prior weight {weight:.3g}, "
                 + (f"volume error {rec['volume_error']:.3f}, " if truth is not None else "")
                 + f"{rec['seconds']:.0f} s")
+    theta, se_theta = _close(views, theta, spp, jax.random.fold_in(key, 10 ** 6), weight, truth, history, log)
     density = np.exp(np.asarray(theta))
-    info = np.asarray(hutchinson_diagonal(views, theta, spp, jax.random.fold_in(key, 10 ** 6)))
-    prior_diag = 2.0 * weight * sum(_neighbour_count(shape, a) for a in range(3))
-    se_theta = 1.0 / np.sqrt(np.maximum(info, 0.0) + prior_diag)
     return density, density * se_theta, history
+
+
+def _close(views, theta, spp, key, weight, truth, history, log):
+    """The fit's last stage: for grids up to `DENSE_SE_MAX` voxels one Gauss-Newton step of the whole objective with
+    the dense information (`dense_gauss_newton`, renders of at least `SE_SPP_MIN` spp) and the standard errors from
+    its covariance; for larger grids Adam's last iterate and the diagonal standard errors (`voxel_se`)."""
+    spp = max(spp, SE_SPP_MIN)
+    if int(np.prod(theta.shape)) > DENSE_SE_MAX:
+        return theta, voxel_se(views, theta, spp, key, weight)[0]
+    t0 = time.perf_counter()
+    delta, cov = dense_gauss_newton(views, theta, spp, key, weight)
+    theta = theta + jnp.asarray(delta, theta.dtype)
+    rec = {"iteration": "gauss-newton", "largest_step": float(np.max(np.abs(delta))),
+           "seconds": history[-1]["seconds"] + time.perf_counter() - t0 if history else time.perf_counter() - t0}
+    if truth is not None:
+        rec["volume_error"] = float(np.linalg.norm(np.exp(np.asarray(theta)) - truth) / np.linalg.norm(truth))
+    history.append(rec)
+    log(f"  closing Gauss-Newton step: largest change {rec['largest_step']:.3f} in log-density"
+        + (f", volume error {rec['volume_error']:.3f}" if truth is not None else ""))
+    return theta, np.sqrt(np.maximum(np.diag(cov), 0.0)).reshape(theta.shape)
 
 
 def heldout_error(view, density, spp: int, key) -> dict:
@@ -329,9 +459,10 @@ def main(argv=None) -> int:
     text = json.dumps({"views": pairs, "heldout": heldout, "history": history}, indent=1)
     atomic_write(paths["result"], lambda tmp: open(tmp, "w").write(text))
     write_slices(paths["slices"], density, se, truth)
-    last = history[-1]
-    print(f"done: chi2/px {last['chi2']:.3f}" + (f", volume error {last['volume_error']:.3f}" if truth is not None
-                                                  else "") + f"; wrote {paths['density']}")
+    chi2 = [r["chi2"] for r in history if "chi2" in r][-1]
+    print(f"done: chi2/px {chi2:.3f} (Adam's last iteration)"
+          + (f", volume error {history[-1]['volume_error']:.3f}" if truth is not None else "")
+          + f"; wrote {paths['density']}")
     return 0
 
 

@@ -445,3 +445,43 @@ def test_a_grid_sampled_from_height_fog_has_its_optical_depths():
             t_end = min(t_end, float((hi[1] - h / 2 - 1e-3 - o[1]) / d[1]))
         got, want = depth(o, d, jnp.float32(t_end))
         assert abs(float(got) - float(want)) <= bound * float(want) + 1e-6, (float(got), float(want), bound)
+
+
+def test_the_prior_hessian_is_the_neighbour_penalty_s():
+    """`fitting.grid.prior_hessian` against `jax.hessian` of the penalty on a 2 x 3 x 4 grid (the penalty is
+    quadratic, so the two agree to float32 rounding of the automatic one)."""
+    from fitting.grid import neighbour_penalty, prior_hessian
+
+    shape = (2, 3, 4)
+    theta = jnp.asarray(np.random.default_rng(0).normal(size=shape), jnp.float32)
+    auto = np.asarray(jax.hessian(lambda t: 0.7 * neighbour_penalty(t.reshape(shape)))(theta.ravel()))
+    np.testing.assert_allclose(prior_hessian(shape, 0.7), auto, atol=1e-5)
+
+
+@pytest.mark.slow  # forward mode over every voxel of a grid, twice per view: ~1 min of compilation on 2 cores
+def test_dense_voxel_information_matches_the_hutchinson_diagonal():
+    """The dense two-key information's diagonal against Hutchinson's estimate of it (32 random-sign probes) on a
+    2^3 grid seen by one 6 x 6 px view: both estimate `diag(J^T W J)`; the tolerance is 4 of the Hutchinson mean's
+    standard errors (from its probes' spread) plus 10% for the dense matrix's own Monte Carlo noise (two 64-spp
+    renders); `voxel_se` is the square root of the diagonal of the inverse of that matrix plus the prior's Hessian,
+    which is at least the inverse square root of its diagonal (correlations only add variance)."""
+    from fitting.grid import dense_information, hutchinson_diagonal, prior_hessian, voxel_se
+
+    scene = jf.load_scene(REPO / "data_synthetic" / "scenes" / "spot_fog.json",
+                          ["camera.width=6", "camera.height=6", "integrator.max_depth=3"]).scene
+    box = ((-2.0, -0.5, -2.0), (2.0, 2.5, 1.5))
+    med = GridMedium(np.full((2, 2, 2, 1), 0.5, np.float32), 1.0, 0.9, scene.medium.phase, bounds=box)
+    scene = _with_medium(scene, med)
+    img, var = jf.render(scene, jax.random.key(1), 256, variance=True)
+    views = [(scene, img, var)]
+    theta = jnp.full((2, 2, 2), math.log(0.5), jnp.float32)
+    F, _ = dense_information(views, theta, 64, jax.random.key(2))
+    probes = np.stack([np.asarray(hutchinson_diagonal(views, theta, 64, jax.random.key(10 + p), probes=1)).ravel()
+                       for p in range(32)])
+    hut, hut_se = probes.mean(0), probes.std(0, ddof=1) / math.sqrt(len(probes))
+    assert np.all(np.abs(np.diag(F) - hut) <= 4 * hut_se + 0.1 * hut), (np.diag(F), hut, hut_se)
+    se, how = voxel_se(views, theta, 64, jax.random.key(2), 0.1)
+    A = F + prior_hessian((2, 2, 2), 0.1)
+    assert how == "dense"
+    np.testing.assert_allclose(se.ravel(), np.sqrt(np.diag(np.linalg.inv(A))), rtol=1e-6)
+    assert np.all(se.ravel() >= (1 - 1e-9) / np.sqrt(np.diag(A)))
