@@ -160,7 +160,7 @@ def normal_equations(pa: Pass, pb: Pass, w: np.ndarray) -> tuple[np.ndarray, np.
 QUALITY_MIN = 0.5
 """The smallest relative eigenvalue of the two-key normal matrix (`Step.quality`) along which the covariances trust
 it, and below which the estimate does not stop: at 0.5 the Jacobians' noise equals their signal along that
-direction. Measured over the coverage study (docs/results/fit_solver/coverage.md, 156 fits): accepted fits whose
+direction. Measured over the coverage study at 76b4828 (docs/results/fit_solver.md, 156 fits): accepted fits whose
 last step read 0.5-1 had errors of rms 0.92-1.11 standard errors; the three below 0.5 (0.33-0.36) rms 2.14, one a
 mesh fit 3.9 and 2.9 standard errors off; at 0.085 a one-view spot fit was 2.5-3.8 off."""
 
