@@ -256,7 +256,7 @@ def voxel_se(views, theta, spp: int, key, weight: float) -> tuple[np.ndarray, st
     shape = tuple(theta.shape)
     if int(np.prod(shape)) <= DENSE_SE_MAX:
         _, cov = dense_gauss_newton(views, theta, spp, key, weight)
-        return np.sqrt(np.maximum(np.diag(cov), 0.0)).reshape(shape), "dense"
+        return _diagonal_se(cov, shape), "dense"
     info = np.asarray(hutchinson_diagonal(views, theta, spp, key))
     prior_diag = 2.0 * weight * sum(_neighbour_count(shape, a) for a in range(3))
     return 1.0 / np.sqrt(np.maximum(info, 0.0) + prior_diag), "diagonal"
@@ -317,7 +317,12 @@ def _close(views, theta, spp, key, weight, truth, history, log):
     history.append(rec)
     log(f"  closing Gauss-Newton step: largest change {rec['largest_step']:.3f} in log-density"
         + (f", volume error {rec['volume_error']:.3f}" if truth is not None else ""))
-    return theta, np.sqrt(np.maximum(np.diag(cov), 0.0)).reshape(theta.shape)
+    return theta, _diagonal_se(cov, theta.shape)
+
+
+def _diagonal_se(cov: np.ndarray, shape) -> np.ndarray:
+    """Each voxel's standard error (the square root of the covariance's diagonal), in the grid's shape."""
+    return np.sqrt(np.maximum(np.diag(cov), 0.0)).reshape(shape)
 
 
 def heldout_error(view, density, spp: int, key) -> dict:
