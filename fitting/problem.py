@@ -147,6 +147,31 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     return View(scene, pool(target, downscale), name, target_spp, var, downscale, small_ok)
 
 
+STRATA_SPP_MIN = 2
+"""Samples per source pixel below which a pooled view is rendered at the fit resolution instead (a pixel's sample
+variance needs two samples)."""
+
+
+def stratified(spp: int, f: int) -> bool:
+    """Whether a pass of `spp` samples per pooled pixel renders a view pooled by `f` at the source resolution."""
+    return f > 1 and spp % (f * f) == 0 and spp // (f * f) >= STRATA_SPP_MIN
+
+
+def _fine_scene(scene: jaxfog.Scene, f: int) -> jaxfog.Scene:
+    """`scene` with its camera at `f` times the resolution (the target's own, for a view pooled by `f`)."""
+    if f == 1:
+        return scene
+    c = scene.camera
+    cam = jaxfog.Camera(origin=c.origin, target=c.target, up=c.up, fov=c.fov, width=c.width * f, height=c.height * f)
+    return eqx.tree_at(lambda s: s.camera, scene, cam)
+
+
+def _pool(img, f: int):
+    """`pool` for traced arrays: the mean of each f x f square of an `(H, W, C)` image."""
+    H, W, C = img.shape
+    return img.reshape(H // f, f, W // f, f, C).mean(axis=(1, 3))
+
+
 @eqx.filter_jit
 def _scan_program(scenes, names, Y, key, spp):
     """Every candidate row of `Y` rendered in every scene (vmapped over the candidates; one compiled program per
@@ -197,6 +222,7 @@ class Problem:
         self.t = np.concatenate([(np.asarray(v.target, np.float64) / s).ravel()
                                  for v, s in zip(views, self.scales)]) / math.sqrt(self.n) * self.valid
         self.pixel_of = np.arange(self.n) // 3
+        self.fine = [_fine_scene(v.scene, v.downscale) for v in views]
 
     def reference(self, y) -> jaxfog.AbstractMedium | None:
         """The "proposal" estimator's reference medium: the medium at `y`, constant to differentiation."""
@@ -204,9 +230,20 @@ class Problem:
         return None if med is None else jax.lax.stop_gradient(med)
 
     def _render(self, i: int, vals: dict, key, spp: int, ref, variance=False):
-        """View i's render at `vals` (times the camera's factor), "proposal" with reference `ref` where given."""
+        """View i's render at `vals` (times the camera's factor), "proposal" with reference `ref` where given.
+
+        A pooled view (`downscale` f > 1) with at least `STRATA_SPP_MIN` samples per source pixel is rendered at the
+        target's resolution with spp / f^2 samples a pixel and pooled like the target: the same image in
+        expectation, its samples stratified over the f x f source pixels. Its variance is then the target's kind:
+        the mean of the source pixels' own variances, without the spread of radiance across the pooled pixel that
+        f^2 jittered samples of the coarse pixel would add (docs/fitting.md, "The pooled pixel's variance")."""
         kw = {"estimator": "proposal", "proposal": ref} if ref is not None else {}
-        out = jaxfog.render(apply(self.views[i].scene, vals), key, spp, variance=variance, **kw)
+        f = self.views[i].downscale
+        if stratified(spp, f):
+            out = jaxfog.render(apply(self.fine[i], vals), key, spp // (f * f), variance=variance, **kw)
+            out = (_pool(out[0], f), _pool(out[1], f) / (f * f)) if variance else _pool(out, f)
+        else:
+            out = jaxfog.render(apply(self.views[i].scene, vals), key, spp, variance=variance, **kw)
         if variance:
             return _gain(out[0], vals, i), _gain(out[1], vals, i, 2)
         return _gain(out, vals, i)

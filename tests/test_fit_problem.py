@@ -1,0 +1,52 @@
+"""A pooled view's passes (fitting/problem.py): rendered at the target's resolution and pooled like the target, so
+that the pass's per-sample variance is the target's kind (the source pixels' own variances, without the spread of
+radiance across a pooled pixel)."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+import jaxfog
+from fitting import study
+from fitting.params import scene_values
+from fitting.problem import STRATA_SPP_MIN, Problem, make_view, pool, stratified
+
+
+@pytest.fixture(scope="module")
+def pooled():
+    scene = study._small(jaxfog.load_scene(str(study.SCENES / "spot_fog.json")).scene, 16)
+    target = np.asarray(jaxfog.render(scene, jax.random.key(1), 8))
+    return scene, Problem([make_view(scene, target, "spot", 4, 8)], ["sigma_t", "g"])
+
+
+def test_stratified_needs_whole_samples_per_source_pixel():
+    assert not stratified(64, 1)
+    assert stratified(16 * STRATA_SPP_MIN, 4) and not stratified(16 * STRATA_SPP_MIN - 16, 4)
+    assert not stratified(40, 4)  # 40 / 16 is no whole number of samples
+
+
+def test_a_pooled_pass_is_the_pooled_render_at_the_targets_resolution(pooled):
+    """Exact: the pass's image and variance are those of one render at 16 x 16 px with spp / 16, pooled (the image
+    as the target is, the variance of a mean of 16 independent pixels divided by 16 more)."""
+    scene, P = pooled
+    vals = scene_values(scene)
+    key = jax.random.key(3)
+    img, var = P._render(0, {n: vals[n] for n in P.names}, key, 64, None, variance=True)
+    fine, fvar = jaxfog.render(scene, key, 4, variance=True)
+    np.testing.assert_allclose(np.asarray(img), pool(np.asarray(fine), 4), rtol=1e-6, atol=0)
+    np.testing.assert_allclose(np.asarray(var), pool(np.asarray(fvar), 4) / 16, rtol=1e-6, atol=0)
+
+
+def test_a_pooled_pass_agrees_with_the_coarse_render_in_the_mean(pooled):
+    """Statistical (seeded): the stratified pass and a render at the fit resolution estimate the same pooled image;
+    every pixel's difference within 4.5 of its standard error (the two renders' variances; 48 values, so a
+    family-wise 5% bound is about 3.3 and 4.5 leaves room for the variances' own noise)."""
+    scene, P = pooled
+    vals = scene_values(scene)
+    key_a, key_b = jax.random.split(jax.random.key(5))
+    a, va = P._render(0, {n: vals[n] for n in P.names}, key_a, 1024, None, variance=True)
+    b, vb = jaxfog.render(P.views[0].scene, key_b, 1024, variance=True)
+    z = (np.asarray(a) - np.asarray(b)) / np.sqrt(np.asarray(va) + np.asarray(vb) + 1e-30)
+    assert np.max(np.abs(z)) < 4.5, np.max(np.abs(z))
