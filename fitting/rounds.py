@@ -129,9 +129,11 @@ def robust_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, r: np.nda
     their paths, so each pixel is one cluster): `A^-1 B A^-1`, `B = P / (P - k) sum_p s_p s_p^T`, `s_p` the sum over
     pixel p's elements of `J^T W r`. It needs no noise model: `E[r^2]` is the target's variance plus the renders',
     whatever their distribution, and a model that misses the target by more than the noise widens it. With
-    `leverage`, each pixel's sum is divided by `1 - h_p` instead of the `P / (P - k)` factor (`h_p` the pixel's
-    share of the fit, `sum_c W J A^-1 J^T`, at most 0.9: the jackknife-like correction for the residuals a
-    high-leverage pixel loses to the fit)."""
+    `leverage`, each pixel's sum is divided by `sqrt(1 - h_p)` instead of the `P / (P - k)` factor (`h_p` the
+    pixel's share of the fit, `sum_c W J A^-1 J^T`, at most 0.9): the CR2 correction (Bell and McCaffrey 2002), under
+    which the sandwich is unbiased where the noise model holds (`E[r_p^2] = (1 - h_p) var_p` for the residual a
+    pixel keeps after a fit it pulls toward itself). The jackknife form, `1 - h_p`, overstates each pixel's share
+    by another `1 / (1 - h_p)`."""
     W = w * w
     s = J * (W * r)[:, None]
     P = int(pixel_of.max()) + 1
@@ -141,7 +143,7 @@ def robust_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, r: np.nda
     if leverage:
         h = np.zeros(P)
         np.add.at(h, pixel_of, W * np.einsum("ij,jk,ik->i", J, A_inv, J))
-        S = S / (1.0 - np.clip(h, 0.0, 0.9))[:, None]
+        S = S / np.sqrt(1.0 - np.clip(h, 0.0, 0.9))[:, None]
         return A_inv @ (S.T @ S) @ A_inv
     B = (S.T @ S) * (P / max(P - k, 1))
     return A_inv @ B @ A_inv
