@@ -298,6 +298,10 @@ def main(argv=None) -> int:
 
     use_cpu_cores()
     use_compilation_cache()
+    if args.seeds < 1 or args.foreign_seeds < 0 or (args.max_seeds is not None and args.max_seeds < args.seeds):
+        print(f"error: --seeds must be >= 1 (got {args.seeds}), --foreign-seeds >= 0 (got {args.foreign_seeds}) and "
+              f"--max-seeds >= --seeds (got {args.max_seeds})", file=sys.stderr)
+        return 2
     fams = [f for f in args.families.split(",") if f]
     unknown = [f for f in fams if f not in FAMILIES and f not in ("foreign", "photo")]
     if unknown:
