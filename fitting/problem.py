@@ -48,7 +48,8 @@ class View(NamedTuple):
 
 
 def pool(img: np.ndarray, f: int) -> np.ndarray:
-    """Box-downsample `(H, W, C)` by an integer factor (exact: a pixel is the mean of its f x f square)."""
+    """Box-downsample `(H, W, C)` by an integer factor (exact: a pixel is the mean of its f x f square); numpy or
+    traced JAX arrays."""
     if f == 1:
         return img
     H, W, C = img.shape
@@ -166,12 +167,6 @@ def _fine_scene(scene: jaxfog.Scene, f: int) -> jaxfog.Scene:
     return eqx.tree_at(lambda s: s.camera, scene, cam)
 
 
-def _pool(img, f: int):
-    """`pool` for traced arrays: the mean of each f x f square of an `(H, W, C)` image."""
-    H, W, C = img.shape
-    return img.reshape(H // f, f, W // f, f, C).mean(axis=(1, 3))
-
-
 @eqx.filter_jit
 def _scan_program(scenes, names, Y, key, spp):
     """Every candidate row of `Y` rendered in every scene (vmapped over the candidates; one compiled program per
@@ -241,7 +236,7 @@ class Problem:
         f = self.views[i].downscale
         if stratified(spp, f):
             out = jaxfog.render(apply(self.fine[i], vals), key, spp // (f * f), variance=variance, **kw)
-            out = (_pool(out[0], f), _pool(out[1], f) / (f * f)) if variance else _pool(out, f)
+            out = (pool(out[0], f), pool(out[1], f) / (f * f)) if variance else pool(out, f)
         else:
             out = jaxfog.render(apply(self.views[i].scene, vals), key, spp, variance=variance, **kw)
         if variance:
