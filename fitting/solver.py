@@ -515,6 +515,7 @@ def summarise(problem: Problem, state: FitState, cfg: FitConfig) -> FitResult:
     se_r = np.sqrt(np.abs(np.diag(_to_params(names, y, best.step.cov_render))))
     se_t = np.sqrt(np.abs(np.diag(_to_params(names, y, best.step.cov_target))))
     se_rob = np.sqrt(np.abs(np.diag(_to_params(names, y, best.step.cov_robust))))
+    nu = best.step.nu if best.step.nu is not None else np.full(k, np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = C / np.sqrt(np.outer(np.diag(C), np.diag(C)))
     fisher = np.linalg.pinv(C) if np.all(np.isfinite(C)) else np.full((k, k), np.nan)
@@ -536,7 +537,7 @@ def summarise(problem: Problem, state: FitState, cfg: FitConfig) -> FitResult:
         names=names, params=vals, init=dict(state.init), success=bool(explained and not edge and not loose),
         messages=messages,
         uncertainty={n: {"se": float(se[i]), "se_render": float(se_r[i]), "se_target": float(se_t[i]),
-                         "se_robust": float(se_rob[i])} for i, n in enumerate(names)},
+                         "se_robust": float(se_rob[i]), "nu": float(nu[i])} for i, n in enumerate(names)},
         rounds=state.round, wall_s=wall, chi2=float(best.check.worst), correlation=corr.tolist(),
         covariance=C.tolist(), information=information, history=list(state.records),
         timing=[{k2: r[k2] for k2 in ("round", "phase", "wall_s", "cpu_s")} for r in state.records], search=search,

@@ -107,6 +107,16 @@ def test_judge_applies_both_tolerances():
     assert not suite.judge(case, 0, dict(coarse, information={}), 1.0)["ok"]  # nothing named
     sharp = {"se": 0.03, "se_target": 0.009, "se_render": 0.005}  # the targets would allow 0.02
     assert not suite.judge(case, 0, dict(coarse, uncertainty=dict(coarse["uncertainty"], g=sharp)), 1.0)["ok"]
+    # an honest "not pinned down" (exit 1) passes only where the targets limit the loose parameter and every
+    # parameter is still within its bound; any other refusal never does
+    loose = dict(coarse, success=False, messages=["not pinned down by these targets at this budget (standard error "
+                                                  "above 0.1): ['g']; more spp, a larger budget or views"])
+    assert suite.judge(case, 1, loose, 1.0)["ok"]
+    assert not suite.judge(case, 1, dict(loose, uncertainty=dict(coarse["uncertainty"], g=sharp)), 1.0)["ok"]
+    assert not suite.judge(case, 1, dict(loose, params={"sigma_t": 0.505, "g": 0.70}), 1.0)["ok"]
+    edge = dict(loose, messages=loose["messages"] + ["parameters ran to the edge of their range: ['g']"])
+    assert not suite.judge(case, 1, edge, 1.0)["ok"]
+    assert not suite.judge(case, 2, loose, 1.0)["ok"]
     fail = dict(case, expect="fail", determined=[])
     msg = {"success": False, "messages": ["the model does not explain the target(s): residual is 9x"]}
     assert suite.judge(fail, 1, msg, 1.0)["ok"]
