@@ -286,6 +286,9 @@ def main(argv=None) -> int:
                     help="a family with fewer than --seeds accepted fits draws further seeds, up to this many in all "
                          "(default: --seeds, no more)")
     ap.add_argument("--foreign-seeds", type=int, default=3, help="fit seeds per foreign case (default 3)")
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="the first study seed (default 0): another value draws other truths, starts and targets, "
+                         "for a run independent of one a method was chosen on")
     ap.add_argument("--summary", action="store_true", help="only summarise DIR/fits.jsonl")
     args = ap.parse_args(argv)
     outdir = Path(args.out)
@@ -298,9 +301,11 @@ def main(argv=None) -> int:
 
     use_cpu_cores()
     use_compilation_cache()
-    if args.seeds < 1 or args.foreign_seeds < 0 or (args.max_seeds is not None and args.max_seeds < args.seeds):
-        print(f"error: --seeds must be >= 1 (got {args.seeds}), --foreign-seeds >= 0 (got {args.foreign_seeds}) and "
-              f"--max-seeds >= --seeds (got {args.max_seeds})", file=sys.stderr)
+    if (args.seeds < 1 or args.foreign_seeds < 0 or args.first_seed < 0
+            or (args.max_seeds is not None and args.max_seeds < args.seeds)):
+        print(f"error: --seeds must be >= 1 (got {args.seeds}), --foreign-seeds >= 0 (got {args.foreign_seeds}), "
+              f"--first-seed >= 0 (got {args.first_seed}) and --max-seeds >= --seeds (got {args.max_seeds})",
+              file=sys.stderr)
         return 2
     fams = [f for f in args.families.split(",") if f]
     unknown = [f for f in fams if f not in FAMILIES and f not in ("foreign", "photo")]
@@ -315,16 +320,17 @@ def main(argv=None) -> int:
             if x.strip():
                 d = json.loads(x)
                 done.add((d["family"], d.get("case"), d["seed"]))
-    jobs = [(f, None, s) for s in range(args.seeds) for f in fams if f != "foreign"]
+    s0 = args.first_seed
+    jobs = [(f, None, s) for s in range(s0, s0 + args.seeds) for f in fams if f != "foreign"]
     if "foreign" in fams:
         cases = [c for c in json.loads((FOREIGN / "manifest.json").read_text())["cases"] if c["expect"] == "pass"]
-        jobs += [("foreign", c["name"], s) for s in range(args.foreign_seeds) for c in cases]
+        jobs += [("foreign", c["name"], s) for s in range(s0, s0 + args.foreign_seeds) for c in cases]
         by_name = {c["name"]: c for c in cases}
     for fam, case, seed in jobs:
         if (fam, case, seed) not in done:
             _one(path, fam, case, seed, by_name if fam == "foreign" else None)
     for fam in [f for f in fams if f != "foreign"]:
-        for seed in range(args.seeds, max(args.max_seeds or 0, args.seeds)):
+        for seed in range(s0 + args.seeds, s0 + max(args.max_seeds or 0, args.seeds)):
             if _accepted(path, fam) >= args.seeds:
                 break
             if (fam, None, seed) not in done:

@@ -7,7 +7,8 @@ import pytest
 from fitting import study
 
 
-@pytest.mark.parametrize("args", [["--seeds", "0"], ["--seeds", "9", "--max-seeds", "5"], ["--foreign-seeds", "-1"]])
+@pytest.mark.parametrize("args", [["--seeds", "0"], ["--seeds", "9", "--max-seeds", "5"], ["--foreign-seeds", "-1"],
+                                  ["--first-seed", "-3"]])
 def test_bad_seed_counts_are_refused(tmp_path, capsys, args):
     assert study.main(["--out", str(tmp_path), *args]) == 2
     assert "error:" in capsys.readouterr().err
