@@ -345,6 +345,13 @@ def _accepted(path: Path, family: str) -> int:
     return sum(1 for d in lines if d["family"] == family and d.get("success"))
 
 
+def _z(p: dict) -> float:
+    """A parameter's error over its standard error; +-inf where the standard error is 0 (a parameter at the edge
+    of its range, whose map to the unconstrained coordinate is flat there)."""
+    err = p["estimate"] - p["truth"]
+    return err / p["se"] if p["se"] else math.copysign(math.inf, err)
+
+
 def _one(path: Path, fam: str, case: str | None, seed: int, by_name: dict | None = None) -> None:
     """Run one fit of the study and append its line to `path`."""
     d = (foreign_fit(by_name[case], seed) if fam == "foreign" else photo_fit(seed) if fam == "photo"
@@ -353,7 +360,7 @@ def _one(path: Path, fam: str, case: str | None, seed: int, by_name: dict | None
         f.write(json.dumps(d) + "\n")
     ok = "error" not in d
     print(f"{fam} {case or ''} seed {seed}: " + (" ".join(
-        f"{n} {p['estimate']:.4g} (true {p['truth']:.4g}, {(p['estimate'] - p['truth']) / p['se']:+.1f} se)"
+        f"{n} {p['estimate']:.4g} (true {p['truth']:.4g}, {_z(p):+.1f} se)"
         for n, p in d["params"].items()) + f" {'ok' if d['success'] else 'FAILED'} {d['wall_s']:.1f} s"
         if ok else d["error"]), flush=True)
 
