@@ -115,7 +115,9 @@ def test_effective_pixels_counts_the_pixels_that_carry_a_parameters_variance():
     var = np.full(N, 1e-6)
     var[:3] = 1.0                      # one pixel's noise dominates parameter 0's variance
     nu = effective_pixels(A_inv, J, np.ones(N), var, PIXEL_OF)
-    assert 1.0 <= nu[0] < 1.01, nu
+    # pixel 0: share (3 x 1)^2 = 9; the other 199: (3 x 1e-3)^2 = 9e-6 each
+    expected = (9.0 + 199 * 9e-6) ** 2 / (81.0 + 199 * 9e-6 ** 2)
+    np.testing.assert_allclose(nu[0], expected, rtol=1e-9)
 
 
 def test_reported_covariance_completes_few_pixels_with_the_noise_model():
