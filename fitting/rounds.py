@@ -109,6 +109,13 @@ def normal_matrix(Ja: np.ndarray, Jb: np.ndarray, w: np.ndarray) -> np.ndarray:
     return 0.5 * (M + M.T)
 
 
+def per_pixel(x: np.ndarray, pixel_of: np.ndarray) -> np.ndarray:
+    """Sums of `x` (`(n,)` or `(n, k)`, one row per element) over each pixel's elements: `(P,)` or `(P, k)`."""
+    out = np.zeros((int(pixel_of.max()) + 1,) + x.shape[1:])
+    np.add.at(out, pixel_of, x)
+    return out
+
+
 def model_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, var: np.ndarray,
                      pixel_of: np.ndarray) -> np.ndarray:
     """The sandwich `A^-1 B A^-1` of a weighted least-squares step whose residual has elements of variance `var`,
@@ -117,10 +124,7 @@ def model_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, var: np.nd
     `s_p = sum_c J_c W_c sqrt(var_c)` over pixel p's channels. (Channels taken as independent instead would
     understate a grey fit's variance up to 3x.)"""
     W = w * w
-    s = J * (W * np.sqrt(np.maximum(var, 0.0)))[:, None]
-    P = int(pixel_of.max()) + 1
-    S = np.zeros((P, J.shape[1]))
-    np.add.at(S, pixel_of, s)
+    S = per_pixel(J * (W * np.sqrt(np.maximum(var, 0.0)))[:, None], pixel_of)
     return A_inv @ (S.T @ S) @ A_inv
 
 
@@ -136,14 +140,10 @@ def robust_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, r: np.nda
     pixel keeps after a fit it pulls toward itself). The jackknife form, `1 - h_p`, overstates each pixel's share
     by another `1 / (1 - h_p)`."""
     W = w * w
-    s = J * (W * r)[:, None]
-    P = int(pixel_of.max()) + 1
-    S = np.zeros((P, J.shape[1]))
-    np.add.at(S, pixel_of, s)
-    k = J.shape[1]
+    S = per_pixel(J * (W * r)[:, None], pixel_of)
+    P, k = S.shape
     if leverage:
-        h = np.zeros(P)
-        np.add.at(h, pixel_of, W * np.einsum("ij,jk,ik->i", J, A_inv, J))
+        h = per_pixel(W * np.einsum("ij,jk,ik->i", J, A_inv, J), pixel_of)
         S = S / np.sqrt(1.0 - np.clip(h, 0.0, 0.9))[:, None]
         return A_inv @ (S.T @ S) @ A_inv
     B = (S.T @ S) * (P / max(P - k, 1))
@@ -228,11 +228,7 @@ def effective_pixels(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, var: np.nd
     equally, 1 where one pixel carries it all (measured: an area light's fit of sigma_t read 2.1, two pixels of the
     emitter seen through the fog carrying 98% of it; its residual-based standard error was 0.4x the model's)."""
     W = w * w
-    G = (J * W[:, None]) @ A_inv
-    P = int(pixel_of.max()) + 1
-    S = np.zeros((P, J.shape[1]))
-    np.add.at(S, pixel_of, G * np.sqrt(np.maximum(var, 0.0))[:, None])
-    c = S * S
+    c = per_pixel((J * W[:, None]) @ A_inv * np.sqrt(np.maximum(var, 0.0))[:, None], pixel_of) ** 2
     return c.sum(axis=0) ** 2 / np.maximum((c * c).sum(axis=0), 1e-300)
 
 
