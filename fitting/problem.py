@@ -45,6 +45,8 @@ class View(NamedTuple):
     target_var: np.ndarray | None = None
     downscale: int = 1
     valid: np.ndarray | None = None
+    light_pixels: int = 0
+    """Source pixels not fitted because they hold a point-like light's image (`light_pixels`)."""
 
 
 def pool(img: np.ndarray, f: int) -> np.ndarray:
@@ -128,6 +130,9 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     if ok.shape != target.shape[:2]:
         raise FitError(f"{name}: mask is {ok.shape[1]}x{ok.shape[0]} px, the target {target.shape[1]}x"
                        f"{target.shape[0]} px")
+    lit = light_pixels(scene)
+    if np.any(lit & ok):
+        ok, valid = ok & ~lit, ok & ~lit
     if not np.any(ok) or not float(np.mean(target[ok])) > 0.0:
         raise FitError(f"{name}: target is black (every pixel 0): nothing to fit; a target rendered with the light "
                        f"off, or the wrong file?")
@@ -144,8 +149,39 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
         var = np.maximum(var, pool(np.asarray(noise_floor, np.float64), downscale) / downscale ** 2)
     small_ok = None if valid is None else pool(ok[:, :, None].astype(np.float64), downscale)[:, :, 0] >= 1.0
     if small_ok is not None and not np.any(small_ok):
-        raise FitError(f"{name}: no pixel at the fit resolution (1/{downscale}) is free of masked pixels")
-    return View(scene, pool(target, downscale), name, target_spp, var, downscale, small_ok)
+        raise FitError(f"{name}: no pixel at the fit resolution (1/{downscale}) is free of masked pixels"
+                       + (f" ({int(lit.sum())} of them hold a point-like light's image)" if lit.any() else ""))
+    return View(scene, pool(target, downscale), name, target_spp, var, downscale, small_ok, int(lit.sum()))
+
+
+LIGHT_MARGIN = 0.5
+"""Pixels (`light_pixels`) within this many pixels of a point-like light's image are not fitted; beyond it the
+radiance's square over a pixel is bounded by that of 1 / b at b = half a pixel's angle."""
+
+
+def light_pixels(scene: jaxfog.Scene) -> np.ndarray:
+    """Bool `(H, W)`: the pixels whose square lies within `LIGHT_MARGIN` px of a point or spot light's image in
+    front of the camera. Camera rays passing such a light at distance `b` carry in-scattered radiance ~ 1 / b, whose
+    square integrated over a pixel that holds the light's image diverges (`int 1 / b^2 b db`): the pixel's estimate
+    has no finite variance at any spp, its typical value lies below its expectation, and its sample variance is no
+    noise model (measured: a 256-spp halo target's central 4 x 4 px read 9% below the expectation, 4.4 of their
+    own standard errors; the fit of the droplet diameter followed them to 3.0 standard errors off, and without the
+    light's 4 px, 0.4)."""
+    cam = scene.camera
+    out = np.zeros((cam.height, cam.width), bool)
+    for light in scene.lights:
+        if not isinstance(light, jaxfog.AbstractPointLikeLight):
+            continue
+        xy, front = cam.film_position(light.position)
+        if not bool(front):
+            continue
+        x, y = (float(v) for v in np.asarray(xy))
+        cols = np.arange(cam.width)
+        rows = np.arange(cam.height)
+        near_x = (cols + 1 + LIGHT_MARGIN > x) & (cols - LIGHT_MARGIN < x)
+        near_y = (rows + 1 + LIGHT_MARGIN > y) & (rows - LIGHT_MARGIN < y)
+        out |= near_y[:, None] & near_x[None, :]
+    return out
 
 
 STRATA_SPP_MIN = 2

@@ -50,6 +50,21 @@ class Camera(eqx.Module):
                 raise ValueError(f"Camera.up = {up.tolist()} is parallel to the view direction target - origin = "
                                  f"{view.tolist()}; expected an up vector not parallel to it")
 
+    def film_position(self, point: Float[Array, "3"]) -> tuple[Float[Array, "2"], Float[Array, ""]]:
+        """The inverse of `generate_ray`: the film position `(x, y)` in pixels at which `point` (scene units) is
+        seen, and whether it lies in front of the camera (the position is meaningless where it does not)."""
+        forward = safe_normalize(self.target - self.origin)
+        right = safe_normalize(cross(forward, self.up))
+        true_up = cross(right, forward)
+        tan_half = jnp.tan(0.5 * jnp.deg2rad(self.fov))
+        v = jnp.asarray(point, jnp.float32) - self.origin
+        depth = jnp.dot(v, forward)
+        safe = jnp.where(depth > 0, depth, 1.0)
+        sx = jnp.dot(v, right) / safe / tan_half
+        sy = jnp.dot(v, true_up) / safe / (tan_half * (self.height / self.width))
+        xy = jnp.stack([0.5 * (sx + 1.0) * self.width, 0.5 * (1.0 - sy) * self.height])
+        return xy, depth > 0
+
     def generate_ray(self, pixel: Float[Array, "2"]) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
         """Ray `(origin, unit direction)` through the film position `pixel = (x, y)` in pixels, x to the right and y
         down from the top-left corner (so pixel (col, row)'s square is [col, col+1] x [row, row+1])."""

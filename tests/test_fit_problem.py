@@ -50,3 +50,32 @@ def test_a_pooled_pass_agrees_with_the_coarse_render_in_the_mean(pooled):
     b, vb = jaxfog.render(P.views[0].scene, key_b, 1024, variance=True)
     z = (np.asarray(a) - np.asarray(b)) / np.sqrt(np.asarray(va) + np.asarray(vb) + 1e-30)
     assert np.max(np.abs(z)) < 4.5, np.max(np.abs(z))
+
+
+def test_pixels_holding_a_point_like_lights_image_are_not_fitted():
+    """A camera aimed at a point light sees it at the image's centre, the corner of four pixels: those four lie within
+    LIGHT_MARGIN (0.5 px) of it and are masked (and the pooled pixels they belong to); moved to (16.3, 5.7), the pixel
+    holding it and the three whose squares lie within 0.3 px; behind the camera, or a directional light, none. The film position
+    is `generate_ray`'s inverse."""
+    import jaxfog
+    from fitting.problem import light_pixels, make_view
+
+    cam = jaxfog.Camera(origin=[0, 1, 4.5], target=[0, 1, -2.5], up=[0, 1, 0], fov=4.0, width=32, height=24)
+    o, d = cam.generate_ray(np.array([16.3, 5.7], np.float32))
+    moved = np.asarray(o + 7.0 * d)
+
+    def scene(*lights):
+        medium = jaxfog.HomogeneousMedium(sigma_t=0.3, albedo=0.9, phase=jaxfog.HenyeyGreenstein(g=0.5))
+        return jaxfog.Scene(camera=cam, medium=medium, lights=tuple(lights))
+
+    np.testing.assert_allclose(np.asarray(cam.film_position(moved)[0]), [16.3, 5.7], atol=1e-3)
+    m = light_pixels(scene(jaxfog.PointLight(position=[0, 1, -2.5], intensity=5.0)))
+    assert sorted(zip(*np.nonzero(m))) == [(11, 15), (11, 16), (12, 15), (12, 16)]
+    m = light_pixels(scene(jaxfog.PointLight(position=moved, intensity=5.0)))
+    assert sorted(zip(*np.nonzero(m))) == [(5, 15), (5, 16), (6, 15), (6, 16)]
+    assert not light_pixels(scene(jaxfog.PointLight(position=[0, 1, 9.0], intensity=5.0))).any()
+    assert not light_pixels(scene(jaxfog.DirectionalLight(direction=[0, 0, 1], irradiance=1.0))).any()
+    sc = scene(jaxfog.SpotLight(position=[0, 1, -2.5], direction=[0, 0, 1], intensity=5.0, cutoff_angle=30.0,
+                                   beam_width=20.0))
+    view = make_view(sc, np.ones((24, 32, 3), np.float32), "v", downscale=4)
+    assert view.light_pixels == 4 and view.valid.shape == (6, 8) and int((~view.valid).sum()) == 4

@@ -340,24 +340,41 @@ def test_non_finite_passes_end_the_fit_with_a_clear_error():
         approach_round(prob, state, cfg, lambda *a: None)
 
 
-def test_same_basin_needs_two_explained_attempts_within_their_joint_99_percent_region():
-    """Two attempts (checks within chi2_max) whose estimates differ by d with covariances C1, C2 are one basin when
-    d^T (C1 + C2)^-1 d <= chi2_99(k) (k = 2: 9.21): d = (0.3, 0) with C = 0.01 I each reads 4.5 (one basin), d = (0.5,
-    0) reads 12.5 (two); an attempt the model does not explain (check above chi2_max) joins none."""
+def test_check_round_screens_the_other_starts_and_solves_a_clearly_better_one_in_full(monkeypatch):
+    """After a full solve reading above CHI2_GOOD every other start is screened; a screen reading below the best full
+    solve's check by more than SCREEN_MARGIN goes on to a full estimate with its passes kept, one that does not is
+    recorded as a screen (never the result) and the next start is screened; a full solve within CHI2_GOOD, or the
+    last start, ends the fit. The check itself is replaced by given values (its own test is above)."""
     from types import SimpleNamespace as NS
 
+    import fitting.solver as so
+    from fitting.problem import Pass
     from fitting.rounds import Check
-    from fitting.solver import Attempt, same_basin
 
-    def attempt(y, worst):
-        step = NS(delta=np.zeros(2), cov=0.01 * np.eye(2))
-        return Attempt(np.asarray(y, float), step, None, Check([worst], [worst] * 3, worst))
+    worst = {"v": 0.0}
+    monkeypatch.setattr(so, "model_check", lambda problem, step, u: Check([worst["v"]], [worst["v"]] * 3, worst["v"]))
+    problem = NS(views=[NS(name="view")])
+    p = Pass(np.zeros(3), np.ones(3), np.zeros((3, 2)), 4)
+    step = NS(delta=np.zeros(2), cov=0.01 * np.eye(2))
+    starts = tuple(np.full(2, float(i)) for i in range(3))
+    state = so.FitState(phase="check", round=5, y=starts[0], init={}, t0=0.0, c0=0.0, starts=starts,
+                        passes=((p, p),), step=step)
+    cfg, log = so.FitConfig(), lambda *a: None
 
-    assert same_basin((attempt([0.0, 0.0], 3.0), attempt([0.3, 0.0], 4.0)), 6.0) == 0
-    assert same_basin((attempt([0.0, 0.0], 3.0), attempt([0.5, 0.0], 4.0)), 6.0) is None
-    assert same_basin((attempt([0.0, 0.0], 9.0), attempt([0.3, 0.0], 4.0)), 6.0) is None
-    assert same_basin((attempt([0.0, 0.0], 3.0), attempt([0.3, 0.0], 9.0)), 6.0) is None
-    assert same_basin((attempt([5.0, 0.0], 3.0), attempt([0.0, 0.0], 3.0), attempt([0.3, 0.0], 4.0)), 6.0) == 1
+    worst["v"] = so.CHI2_GOOD * 1.01
+    s1 = so.check_round(problem, state, cfg, log)
+    assert (s1.phase, s1.start, s1.screen, len(s1.attempts), s1.passes) == ("approach", 1, True, 1, ())
+    worst["v"] = s1.attempts[0].check.worst / so.SCREEN_MARGIN * 1.01   # not clearly better: recorded, next screened
+    s2 = so.check_round(problem, s1.replace(phase="check", passes=((p, p),), step=step), cfg, log)
+    assert (s2.phase, s2.start, s2.screen, len(s2.attempts), s2.attempts[1].screened) == ("approach", 2, True, 2, True)
+    worst["v"] = s1.attempts[0].check.worst / so.SCREEN_MARGIN * 0.99   # clearly better: solved in full from here
+    s3 = so.check_round(problem, s2.replace(phase="check", passes=((p, p),), step=step), cfg, log)
+    assert (s3.phase, s3.start, s3.screen, len(s3.attempts), len(s3.passes)) == ("estimate", 2, False, 2, 1)
+    s4 = so.check_round(problem, s3.replace(phase="check"), cfg, log)     # the last start: the fit ends
+    assert s4.phase == "done" and not s4.attempts[-1].screened
+    assert so._best_attempt(s4.attempts[:2]) is s4.attempts[0]            # a screen is never the result
+    worst["v"] = so.CHI2_GOOD                                               # a first solve within CHI2_GOOD ends it
+    assert so.check_round(problem, state, cfg, log).phase == "done"
 
 
 def test_best_attempt_never_keeps_a_refused_attempt_over_an_accepted_one():
