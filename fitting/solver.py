@@ -10,8 +10,9 @@ module-level function of named inputs returning the next state (docs/fitting.md 
 3. `estimate_round`: passes at one point `y0` accumulated until the estimate `y0 + delta` is precise enough (or
    the renders' share of its variance is small, or the budget is spent); a step too long for its standard errors
    re-centres `y0` first;
-4. `check_round`: the model check on the estimate's residuals; a target the attempt does not explain sends the
-   solver to the next distinct start of the search, up to `FitConfig.max_starts`.
+4. `check_round`: the model check on the estimate's residuals; where the first solve reads above `CHI2_GOOD`, the
+   search's other distinct starts (up to `FitConfig.max_starts`) are screened, and one that reads clearly lower
+   (`SCREEN_MARGIN`) is solved in full.
 
 `fit_views` runs the loop: `state = init(...)`, `while not terminate(state): state = step(state)`, `postprocess`.
 """
@@ -51,8 +52,8 @@ class FitConfig:
       quantities, absolute for g and albedo), or once more batches cannot shrink it much (`render_share`).
     - `max_se`: a parameter whose standard error exceeds this (relative / absolute) is "not pinned down".
     - `chi2_max`: the model check's limit on residual / expected noise.
-    - `max_starts`: local solves from distinct starts of the search before the fit says the model does not explain
-      the targets."""
+    - `max_starts`: distinct starts of the search, the first solved, the others screened where it is not explained
+      well enough (`check_round`), before the fit says the model does not explain the targets."""
 
     spp: int = 256
     seed: int = 0
