@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -41,23 +42,39 @@ class FitError(ValueError):
 
 @dataclass(frozen=True)
 class Transform:
-    """A bijection between a parameter's valid open interval and the real line: `to_u`, `from_u` (jnp, traceable)
-    and `dx_du(u)` (numpy, the derivative of `from_u`)."""
+    """A bijection between a parameter's valid open interval and the real line: `to_u`, `from_u` (traceable; numpy
+    on host values, so the solver's bookkeeping runs no eager JAX operation) and `dx_du(u)` (numpy, the derivative
+    of `from_u`)."""
 
     to_u: Callable
     from_u: Callable
     dx_du: Callable
 
 
+def _xp(x):
+    """`jax.numpy` for JAX arrays and tracers, numpy for host values (each eager JAX operation compiles, or loads
+    from the cache, a program of its own: ~40 ms each the first time in a process)."""
+    return jnp if isinstance(x, jax.Array) else np
+
+
+def _log(x):
+    return _xp(x).log(x)
+
+
+def _exp(u):
+    return _xp(u).exp(u)
+
+
 def _logit(x):
-    return jnp.log(x) - jnp.log1p(-x)
+    xp = _xp(x)
+    return xp.log(x) - xp.log1p(-x)
 
 
 def _sigmoid(u):
-    return 1.0 / (1.0 + jnp.exp(-u))
+    return 1.0 / (1.0 + _xp(u).exp(-u))
 
 
-LOG = Transform(jnp.log, jnp.exp, np.exp)
+LOG = Transform(_log, _exp, np.exp)
 """(0, inf) <-> R: `u = log x`."""
 
 ONE_BELOW = float(np.nextafter(np.float32(1.0), np.float32(0.0)))
@@ -67,10 +84,15 @@ ONE_BELOW = float(np.nextafter(np.float32(1.0), np.float32(0.0)))
 def _tanh_open(u):
     """`tanh(u)` kept inside the open interval (-1, 1) in float32: for |u| > ~9 `tanh` rounds to +-1, a value the
     phase functions refuse (a fit that runs away toward |g| = 1 must report that, not crash)."""
-    return jnp.clip(jnp.tanh(u), -ONE_BELOW, ONE_BELOW)
+    xp = _xp(u)
+    return xp.clip(xp.tanh(u), -ONE_BELOW, ONE_BELOW)
 
 
-ATANH = Transform(jnp.arctanh, _tanh_open, lambda u: 1.0 - np.tanh(u) ** 2)
+def _atanh(x):
+    return _xp(x).arctanh(x)
+
+
+ATANH = Transform(_atanh, _tanh_open, lambda u: 1.0 - np.tanh(u) ** 2)
 """(-1, 1) <-> R: `u = atanh x`."""
 
 LOGIT = Transform(_logit, _sigmoid, lambda u: (1.0 / (1.0 + np.exp(-u))) * (1.0 - 1.0 / (1.0 + np.exp(-u))))
@@ -296,8 +318,9 @@ def apply(scene: jaxfog.Scene, values: dict) -> jaxfog.Scene:
     return scene
 
 
-def to_unconstrained(names, values: dict) -> jnp.ndarray:
-    return jnp.stack([SPECS[n].to_u(jnp.float32(values[n])) for n in names])
+def to_unconstrained(names, values: dict) -> np.ndarray:
+    """The unconstrained coordinates of `values` (float32, as the solver's coordinates are rendered)."""
+    return np.asarray([SPECS[n].to_u(np.float32(values[n])) for n in names], np.float32)
 
 
 def from_unconstrained(names, y) -> dict:
