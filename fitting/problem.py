@@ -47,6 +47,10 @@ class View(NamedTuple):
     valid: np.ndarray | None = None
     light_pixels: int = 0
     """Source pixels not fitted because they hold a point-like light's image (`light_pixels`)."""
+    fine_weight: np.ndarray | None = None
+    """Float `(H, W)` at the target's resolution, 0 on those source pixels and 1 elsewhere (None: none): a pooled
+    pixel is the mean of its other source pixels, in the target and in every pass rendered at the target's
+    resolution (`Problem._render`)."""
 
 
 def pool(img: np.ndarray, f: int) -> np.ndarray:
@@ -130,9 +134,9 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     if ok.shape != target.shape[:2]:
         raise FitError(f"{name}: mask is {ok.shape[1]}x{ok.shape[0]} px, the target {target.shape[1]}x"
                        f"{target.shape[0]} px")
-    lit = light_pixels(scene)
-    if np.any(lit & ok):
-        ok, valid = ok & ~lit, ok & ~lit
+    lit = light_pixels(scene) & ok
+    if np.any(lit) and downscale == 1:
+        ok, valid, lit = ok & ~lit, ok & ~lit, np.zeros_like(lit)
     if not np.any(ok) or not float(np.mean(target[ok])) > 0.0:
         raise FitError(f"{name}: target is black (every pixel 0): nothing to fit; a target rendered with the light "
                        f"off, or the wrong file?")
@@ -141,22 +145,41 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov,
                           width=cam.width // downscale, height=cam.height // downscale)
     scene = eqx.tree_at(lambda s: s.camera, scene, small)
+    w = (~lit).astype(np.float64)[:, :, None]
     if noise is None:
-        var = block_noise(target, downscale)
+        v = second_difference_variance(target)
+        v = np.where(np.isfinite(v), v, np.nanmean(v) if np.any(np.isfinite(v)) else 0.0)
     else:
-        var = pool(np.asarray(noise, np.float64), downscale) / downscale ** 2
+        v = np.asarray(noise, np.float64)
+    var = masked_pool(v, w, downscale, variance=True)
     if noise_floor is not None:
-        var = np.maximum(var, pool(np.asarray(noise_floor, np.float64), downscale) / downscale ** 2)
+        var = np.maximum(var, masked_pool(np.asarray(noise_floor, np.float64), w, downscale, variance=True))
     small_ok = None if valid is None else pool(ok[:, :, None].astype(np.float64), downscale)[:, :, 0] >= 1.0
+    if lit.any():
+        some = pool(w, downscale)[:, :, 0] > 0
+        small_ok = some if small_ok is None else small_ok & some
     if small_ok is not None and not np.any(small_ok):
-        raise FitError(f"{name}: no pixel at the fit resolution (1/{downscale}) is free of masked pixels"
-                       + (f" ({int(lit.sum())} of them hold a point-like light's image)" if lit.any() else ""))
-    return View(scene, pool(target, downscale), name, target_spp, var, downscale, small_ok, int(lit.sum()))
+        raise FitError(f"{name}: no pixel at the fit resolution (1/{downscale}) is free of masked pixels")
+    return View(scene, masked_pool(target, w, downscale), name, target_spp, var, downscale, small_ok, int(lit.sum()),
+                w[:, :, 0].astype(np.float32) if lit.any() else None)
+
+
+def masked_pool(img, w, f: int, variance: bool = False):
+    """`pool(img, f)` over the source pixels of weight `w` (`(H, W, 1)`, 0 or 1) only: the mean of a pooled pixel's
+    weighted source pixels, or with `variance` the variance of that mean from the source pixels' own (numpy or
+    traced JAX arrays; a pooled pixel without any: 0)."""
+    xp = jnp if isinstance(img, jax.Array) else np
+    k = pool(w, f)
+    safe = xp.where(k > 0, k, 1.0)
+    if variance:
+        return xp.where(k > 0, pool(img * w, f) / (safe * safe * f * f), 0.0)
+    return xp.where(k > 0, pool(img * w, f) / safe, 0.0)
 
 
 LIGHT_MARGIN = 0.5
-"""Pixels (`light_pixels`) within this many pixels of a point-like light's image are not fitted; beyond it the
-radiance's square over a pixel is bounded by that of 1 / b at b = half a pixel's angle."""
+"""Pixels (`light_pixels`) within this many pixels of a point-like light's image are not fitted (at the target's
+resolution: a pooled pixel keeps its other source pixels); beyond it the radiance's square over a pixel is bounded
+by that of 1 / b at b = half a pixel's angle."""
 
 
 def light_pixels(scene: jaxfog.Scene) -> np.ndarray:
@@ -254,6 +277,9 @@ class Problem:
                                  for v, s in zip(views, self.scales)]) / math.sqrt(self.n) * self.valid
         self.pixel_of = np.arange(self.n) // 3
         self.fine = [_fine_scene(v.scene, v.downscale) for v in views]
+        self.partial = [None if v.fine_weight is None else
+                        (pool(v.fine_weight[:, :, None].astype(np.float64), v.downscale)[:, :, 0] < 1.0)
+                        for v in views]
 
     def reference(self, y) -> jaxfog.AbstractMedium | None:
         """The "proposal" estimator's reference medium: the medium at `y`, constant to differentiation."""
@@ -269,15 +295,34 @@ class Problem:
         the mean of the source pixels' own variances, without the spread of radiance across the pooled pixel that
         f^2 jittered samples of the coarse pixel would add (docs/fitting.md, "The pooled pixel's variance")."""
         kw = {"estimator": "proposal", "proposal": ref} if ref is not None else {}
-        f = self.views[i].downscale
-        if stratified(spp, f):
+        v, f = self.views[i], self.views[i].downscale
+        coarse = not stratified(spp, f)
+        if not coarse:
             out = jaxfog.render(apply(self.fine[i], vals), key, spp // (f * f), variance=variance, **kw)
-            out = (pool(out[0], f), pool(out[1], f) / (f * f)) if variance else pool(out, f)
+            if v.fine_weight is None:
+                out = (pool(out[0], f), pool(out[1], f) / (f * f)) if variance else pool(out, f)
+            else:
+                w = jnp.asarray(v.fine_weight)[:, :, None]
+                out = ((masked_pool(out[0], w, f), masked_pool(out[1], w, f, variance=True)) if variance
+                       else masked_pool(out, w, f))
         else:
-            out = jaxfog.render(apply(self.views[i].scene, vals), key, spp, variance=variance, **kw)
+            out = jaxfog.render(apply(v.scene, vals), key, spp, variance=variance, **kw)
+        out = (_gain(out[0], vals, i), _gain(out[1], vals, i, 2)) if variance else _gain(out, vals, i)
+        return self._untouched(i, out, variance) if coarse else out
+
+    def _untouched(self, i: int, out, variance: bool = False):
+        """A render at the fit resolution (camera factor applied) with its partly masked pixels (`View.fine_weight`)
+        replaced by the target's, variance 0: it cannot leave their masked source pixels out, so in a pass too small
+        to render at the target's resolution, and in the search, those pixels carry no residual and no Jacobian."""
+        part = self.partial[i]
+        if part is None:
+            return out
+        xp = np if isinstance(out, np.ndarray) else jnp
+        t = xp.asarray(self.views[i].target, out[0].dtype if variance else out.dtype)
+        m = xp.asarray(part)[..., None]
         if variance:
-            return _gain(out[0], vals, i), _gain(out[1], vals, i, 2)
-        return _gain(out, vals, i)
+            return xp.where(m, t, out[0]), xp.where(m, 0.0, out[1])
+        return xp.where(m, t, out)
 
     def images(self, y, key, spp: int) -> list[np.ndarray]:
         """One render per view at `y` (linear radiance, `(h, w, 3)` each), "proposal" with reference at `y`."""
@@ -295,7 +340,7 @@ class Problem:
         numbers: the differences between candidates are smooth), as `(N, n)` in scaled units."""
         out = _scan_program(tuple(v.scene for v in self.views), tuple(self.names), jnp.asarray(Y, jnp.float32), key,
                             int(spp))
-        out = [np.asarray(o, np.float64) for o in out]
+        out = [self._untouched(i, np.asarray(o, np.float64)) for i, o in enumerate(out)]
         return np.stack([self.flat([o[c] for o in out]) for c in range(len(Y))])
 
     def pass_(self, y, key, spp: int) -> Pass:

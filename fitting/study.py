@@ -276,7 +276,7 @@ def write_summary(outdir: Path) -> dict:
     return s
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m fitting.study", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="output folder (fits.jsonl, coverage.md, coverage.json)")
     ap.add_argument("--families", default=",".join([*FAMILIES, "photo", "foreign"]),
@@ -290,7 +290,11 @@ def main(argv=None) -> int:
                     help="the first study seed (default 0): another value draws other truths, starts and targets, "
                          "for a run independent of one a method was chosen on")
     ap.add_argument("--summary", action="store_true", help="only summarise DIR/fits.jsonl")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
     outdir = Path(args.out)
     outdir.mkdir(parents=True, exist_ok=True)
     if args.summary:

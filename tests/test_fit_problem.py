@@ -54,7 +54,7 @@ def test_a_pooled_pass_agrees_with_the_coarse_render_in_the_mean(pooled):
 
 def test_pixels_holding_a_point_like_lights_image_are_not_fitted():
     """A camera aimed at a point light sees it at the image's centre, the corner of four pixels: those four lie within
-    LIGHT_MARGIN (0.5 px) of it and are masked (and the pooled pixels they belong to); moved to (16.3, 5.7), the pixel
+    LIGHT_MARGIN (0.5 px) of it and are left out (of the pooled pixels' means, or as pixels at full resolution); moved to (16.3, 5.7), the pixel
     holding it and the three whose squares lie within 0.3 px; behind the camera, or a directional light, none. The film position
     is `generate_ray`'s inverse."""
     import jaxfog
@@ -77,5 +77,34 @@ def test_pixels_holding_a_point_like_lights_image_are_not_fitted():
     assert not light_pixels(scene(jaxfog.DirectionalLight(direction=[0, 0, 1], irradiance=1.0))).any()
     sc = scene(jaxfog.SpotLight(position=[0, 1, -2.5], direction=[0, 0, 1], intensity=5.0, cutoff_angle=30.0,
                                    beam_width=20.0))
-    view = make_view(sc, np.ones((24, 32, 3), np.float32), "v", downscale=4)
-    assert view.light_pixels == 4 and view.valid.shape == (6, 8) and int((~view.valid).sum()) == 4
+    target = np.ones((24, 32, 3), np.float32)
+    target[11:13, 15:17] = 100.0                                # the light's pixels: left out of the pooled mean
+    view = make_view(sc, target, "v", downscale=4)
+    assert view.light_pixels == 4 and view.valid.all() and view.valid.shape == (6, 8)
+    assert sorted(zip(*np.nonzero(view.fine_weight == 0))) == [(11, 15), (11, 16), (12, 15), (12, 16)]
+    np.testing.assert_array_equal(view.target, np.ones((6, 8, 3)))
+    one = make_view(sc, target, "v", downscale=1)              # at full resolution the pixels themselves go
+    assert one.light_pixels == 0 and int((~one.valid).sum()) == 4
+
+
+def test_a_pass_leaves_a_lights_pixels_out_of_the_pooled_pixels_and_a_coarse_pass_leaves_those_pixels_alone():
+    """A view whose light falls inside pooled pixels: a pass rendered at the target's resolution pools the other
+    source pixels (finite, different from the unmasked pool there), and a pass at the fit resolution (too few samples
+    to stratify) gives those pooled pixels the target's value: their residual 0 to float32 rounding, their Jacobian
+    and variance exactly 0."""
+    cam = jaxfog.Camera(origin=[0, 1, 4.5], target=[0, 1, -2.5], up=[0, 1, 0], fov=20.0, width=16, height=16)
+    medium = jaxfog.HomogeneousMedium(sigma_t=0.3, albedo=0.9, phase=jaxfog.HenyeyGreenstein(g=0.5))
+    scene = jaxfog.Scene(camera=cam, medium=medium, lights=(jaxfog.PointLight(position=[0, 1, -2.5], intensity=5.0),))
+    target = np.asarray(jaxfog.render(scene, jax.random.key(3), 32))
+    view = make_view(scene, target, "lit", 4, 32)
+    prob = Problem([view], ["sigma_t", "g"])
+    part = np.repeat(prob.partial[0].ravel(), 3)
+    assert part.sum() == 12                                   # four pooled pixels, three channels each
+    y = np.asarray([np.log(0.3), np.arctanh(0.5)])
+    fine = prob.pass_(y, jax.random.key(4), 4 * 16 * STRATA_SPP_MIN)
+    assert np.all(np.isfinite(fine.e)) and np.all(fine.u[part] > 0) and np.any(fine.J[part] != 0)
+    coarse = prob.pass_(y, jax.random.key(5), 4)
+    # the target's value in float32 against the scaled target in float64: equal to float32 rounding
+    assert np.all(np.abs(coarse.e[part]) <= 1e-6 * np.abs(prob.t).max())
+    assert np.all(coarse.J[part] == 0) and np.all(coarse.u[part] == 0)
+    assert np.all(coarse.u[~part] > 0)
