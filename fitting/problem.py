@@ -189,7 +189,7 @@ def light_pixels(scene: jaxfog.Scene) -> np.ndarray:
     has no finite variance at any spp, its typical value lies below its expectation, and its sample variance is no
     noise model (measured: a 256-spp halo target's central 4 x 4 px read 9% below the expectation, 4.4 of their
     own standard errors; the fit of the droplet diameter followed them to 3.0 standard errors off, and without the
-    light's 4 px, 0.4)."""
+    light's 4 source px, 1.05)."""
     cam = scene.camera
     out = np.zeros((cam.height, cam.width), bool)
     for light in scene.lights:
