@@ -79,14 +79,15 @@ def second_difference_variance(img: np.ndarray) -> np.ndarray:
     return np.where(cnt > 0, v / np.maximum(cnt, 1), np.nan)
 
 
-def block_noise(img: np.ndarray, f: int) -> np.ndarray:
-    """Per-pixel noise variance of `pool(img, f)`, estimated from `img` alone: `second_difference_variance` averaged
-    over each f x f block (a pixel without one: the image's mean), and the pooled pixel has v / f^2. The estimate errs
-    toward more noise at edges."""
+def block_noise(img: np.ndarray, f: int, w: np.ndarray | None = None) -> np.ndarray:
+    """Per-pixel noise variance of `pool(img, f)` (or of `masked_pool(img, w, f)`), estimated from `img` alone:
+    `second_difference_variance` averaged over each f x f block (a pixel without one: the image's mean), and the
+    pooled pixel has v / f^2 (v / k^2 over its k source pixels of weight 1). The estimate errs toward more noise at
+    edges."""
     v = second_difference_variance(img)
     fill = np.nanmean(v) if np.any(np.isfinite(v)) else 0.0
     v = np.where(np.isfinite(v), v, fill)
-    return pool(v, f) / (f * f)
+    return pool(v, f) / (f * f) if w is None else masked_pool(v, w, f, variance=True)
 
 
 def box_mean(img: np.ndarray, r: int) -> np.ndarray:
@@ -147,11 +148,9 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     scene = eqx.tree_at(lambda s: s.camera, scene, small)
     w = (~lit).astype(np.float64)[:, :, None]
     if noise is None:
-        v = second_difference_variance(target)
-        v = np.where(np.isfinite(v), v, np.nanmean(v) if np.any(np.isfinite(v)) else 0.0)
+        var = block_noise(target, downscale, w)
     else:
-        v = np.asarray(noise, np.float64)
-    var = masked_pool(v, w, downscale, variance=True)
+        var = masked_pool(np.asarray(noise, np.float64), w, downscale, variance=True)
     if noise_floor is not None:
         var = np.maximum(var, masked_pool(np.asarray(noise_floor, np.float64), w, downscale, variance=True))
     small_ok = None if valid is None else pool(ok[:, :, None].astype(np.float64), downscale)[:, :, 0] >= 1.0
