@@ -48,6 +48,10 @@ study; Mitsuba's peak RSS is its subprocess's own.
 
 Timings are wall-clock on whatever else the machine is running (the load average is recorded); ratios inside one
 run are the comparable numbers.
+
+Where the code is: this module configures and measures (the stages of `run_benchmark`: `_strategy_part`,
+`depth_study`, `_mitsuba_part`); the statistics are `benchmarks.bench_stats` (pure NumPy), the printed tables and
+the plots `benchmarks.bench_report`; timing, JSON and the machine record come from `benchmarks.common`.
 """
 
 from __future__ import annotations
@@ -66,14 +70,28 @@ from typing import Callable
 import numpy as np
 
 from benchmarks.bench_mitsuba import run_mitsuba
+from benchmarks.bench_report import format_tables, plot_depth, plot_strategies
+from benchmarks.bench_stats import (
+    ONE_PIXEL,
+    corrected_rmse,
+    curve_to_rmse,
+    expected_rmse,
+    pick_depth,
+    reference_stats,
+    rmse,
+    variance_per_spp,
+    worst_pixel_share,
+)
 from benchmarks.common import (
     OUT,
+    Stopwatch,
     block_means,
-    format_table,
+    digest,
     load,
     machine_info,
     mean_and_se,
     memory_dict,
+    run_summary,
     save_npz,
     scene_path,
     stderr_log,
@@ -128,106 +146,6 @@ QUICK = Config(scenes=("spot_fog",), size=16, levels=(4, 8, 16), ref_spp=64, ref
                equal_error_draws=4)
 
 
-# ========================================================================================= statistics (pure numpy)
-def rmse(image, reference) -> float:
-    """Per-pixel RMSE over all pixels and channels."""
-    d = np.asarray(image, np.float64) - np.asarray(reference, np.float64)
-    return float(np.sqrt(np.mean(d * d)))
-
-
-def reference_rmse(half_a, half_b) -> float:
-    """RMSE against the truth of the average of two independent equal halves: `RMSE(A - B) / 2`."""
-    return rmse(half_a, half_b) / 2.0
-
-
-def corrected_rmse(raw: float, ref_rmse: float) -> float:
-    """RMSE against the truth of an image whose RMSE against an independent unbiased reference is `raw`."""
-    return float(math.sqrt(max(raw * raw - ref_rmse * ref_rmse, 0.0)))
-
-
-def worst_pixel_share(image, reference) -> float:
-    """Share of the squared error (`image - reference`, channels summed) carried by the single worst pixel: near 1
-    means the RMSE is one firefly."""
-    e = np.sum((np.asarray(image, np.float64) - np.asarray(reference, np.float64)) ** 2, axis=-1)
-    total = float(e.sum())
-    return float(e.max() / total) if total > 0 else 0.0
-
-
-ONE_PIXEL = 0.5
-"""A strategy whose final squared error is more than this share in one pixel is flagged as dominated by a firefly."""
-
-
-def variance_per_spp(chunks, chunk_spp: int) -> float:
-    """Variance of one sample, averaged over pixels and channels, from independent images of `chunk_spp` spp each:
-    `chunk_spp * mean(var over images, ddof=1)`. An unbiased n-spp image's expected MSE against the truth is this
-    over n."""
-    c = np.asarray(chunks, np.float64)
-    if c.shape[0] < 2:
-        raise ValueError("need at least two independent images")
-    return float(chunk_spp * np.mean(np.var(c, axis=0, ddof=1)))
-
-
-def expected_rmse(images, reference, ref_rmse: float) -> tuple[float, float, list]:
-    """Expected RMSE against the truth of independent images like `images`: `sqrt(mean MSE - ref_rmse^2)` with the
-    MSE against an independent unbiased `reference`; its standard error (delta method on the mean MSE, nan for one
-    image) and the images' corrected RMSEs."""
-    mses = [rmse(x, reference) ** 2 for x in images]
-    m, se = mean_and_se(mses)
-    e = corrected_rmse(math.sqrt(m), ref_rmse)
-    return e, (se / (2 * e) if e > 0 else float("nan")), [corrected_rmse(math.sqrt(x), ref_rmse) for x in mses]
-
-
-def time_to_rmse(times, rmses, target: float) -> tuple[float, str]:
-    """Time at which a measured RMSE-vs-time curve first reaches `target`: `(seconds, how)`.
-
-    Between measured points: log-log interpolation (`how = "interpolated"`). Before the first or after the last point:
-    extrapolation with RMSE ~ time^(-1/2), the rate of an estimator with finite variance (`how = "extrapolated"`)."""
-    t = np.asarray(times, np.float64)
-    r = np.asarray(rmses, np.float64)
-    if not (target > 0 and np.all(t > 0)) or t.size == 0:
-        raise ValueError("need positive times and a positive target")
-    below = np.nonzero(r <= target)[0]
-    if below.size == 0:
-        return float(t[-1] * (r[-1] / target) ** 2), "extrapolated"
-    i = int(below[0])
-    if i == 0:
-        return float(t[0] * (r[0] / target) ** 2) if r[0] > 0 else float(t[0]), "extrapolated"
-    lr0, lr1 = math.log(r[i - 1]), math.log(max(r[i], 1e-300))
-    lt0, lt1 = math.log(t[i - 1]), math.log(t[i])
-    f = (math.log(target) - lr0) / (lr1 - lr0) if lr1 != lr0 else 1.0
-    return float(math.exp(lt0 + f * (lt1 - lt0))), "interpolated"
-
-
-def pick_depth(table, rel_error: float, metric: str = "pixel") -> int | None:
-    """The cheapest `max_depth` whose bias against the deep reference is within `rel_error` (relative to the mean
-    pixel value of the reference), from one scene's depth table.
-
-    **Arguments:**
-    - `table`: that scene's `rows` from `bench.json` (`["depth"]["scenes"][name]["rows"]`), or the scene's dict
-      holding them; each row has `depth`, `time_per_spp_s`, `rel_mean_bias`, `rel_mean_bias_se`, `rel_pixel_bias`.
-    - `rel_error`: the largest acceptable relative bias, e.g. 0.01 for 1%.
-    - `metric`: `"pixel"` (default) bounds the per-pixel RMSE beyond noise and the mean-image difference plus two
-      standard errors; `"mean"` only the mean-image difference plus two standard errors.
-
-    Returns the depth, or None when no measured depth short of the reference is good enough (then the reference depth
-    itself, or deeper, is needed; the reference's own truncation is not measured)."""
-    rows = table["rows"] if isinstance(table, dict) else table
-    if metric not in ("pixel", "mean"):
-        raise ValueError(f"metric must be 'pixel' or 'mean', got {metric!r}")
-    if not rel_error > 0:
-        raise ValueError(f"rel_error must be > 0, got {rel_error!r}")
-    ok = []
-    for row in rows:
-        if row.get("is_reference"):
-            continue
-        bound = abs(row["rel_mean_bias"]) + 2.0 * row["rel_mean_bias_se"]
-        if metric == "pixel":
-            bound = max(bound, row["rel_pixel_bias"])
-        if bound <= rel_error:
-            ok.append((row["time_per_spp_s"], row["depth"]))
-    return min(ok)[1] if ok else None
-
-
 # ================================================================================================ measurement
 RenderFn = Callable[..., np.ndarray]
 """`render_fn(scene, seed, spp, **strategy) -> (H, W, 3) numpy image`; the result must be on the host."""
@@ -239,17 +157,15 @@ def measure_strategy(scene, render_fn: RenderFn, strategy: dict, levels, seed: i
     spp `levels`; chunk `i` uses seed `seed * 1000 + i`. See the module docstring."""
     levels = [int(x) for x in levels]
     n_pix = int(np.prod(np.shape(reference)[:2]))
-    with CompileTimer() as ct:
-        t0 = clock()
+    with CompileTimer() as ct, Stopwatch(clock) as warmup:
         render_fn(scene, seed * 1000 + 999, levels[0], **strategy)
-        warmup = clock() - t0
     total = None
     elapsed, done, out = 0.0, 0, []
     for i, lv in enumerate(levels):
         chunk = lv - done
-        t0 = clock()
-        img = np.asarray(render_fn(scene, seed * 1000 + i, chunk, **strategy), np.float64)
-        elapsed += clock() - t0
+        with Stopwatch(clock) as sw:
+            img = np.asarray(render_fn(scene, seed * 1000 + i, chunk, **strategy), np.float64)
+        elapsed += sw.s
         total = img * chunk if total is None else total + img * chunk
         done = lv
         mean_img = total / done
@@ -262,7 +178,7 @@ def measure_strategy(scene, render_fn: RenderFn, strategy: dict, levels, seed: i
     return {
         "options": dict(strategy),
         "compile_s": ct.seconds,
-        "warmup_s": warmup,
+        "warmup_s": warmup.s,
         "warmup_spp": levels[0],
         "time_per_spp_s": elapsed / levels[-1],
         "paths_per_s": n_pix * levels[-1] / elapsed if elapsed > 0 else float("nan"),
@@ -281,9 +197,7 @@ def summarize_scene(result: dict) -> None:
     result["target_rmse"] = target
     result["target_rel_rmse"] = target / result["reference"]["mean"]
     for s in strategies.values():
-        lv = s["levels"]
-        t, how = time_to_rmse([x["time_s"] for x in lv], [x["rmse_corrected"] for x in lv], target)
-        s["time_to_target_s"], s["time_to_target_how"] = t, how
+        s["time_to_target_s"], s["time_to_target_how"] = curve_to_rmse(s["levels"], target)
     if DEFAULT_STRATEGY in strategies:
         t_def = strategies[DEFAULT_STRATEGY]["time_to_target_s"]
         for s in strategies.values():
@@ -386,11 +300,10 @@ def _source_hash() -> str:
 
 def reference_image(sf, cfg: Config, cache_dir: Path, render_fn: RenderFn, fresh: bool = False, log=print) -> dict:
     """The scene's high-spp reference (default strategy, `ref_chunks` independent chunks), cached in `cache_dir`."""
-    key = json.dumps({"data": sf.data, "spp": cfg.ref_spp, "chunks": cfg.ref_chunks, "seed": cfg.seed,
-                      "strategy": STRATEGIES[DEFAULT_STRATEGY], "src": _source_hash()}, sort_keys=True)
-    digest = hashlib.sha256(key.encode()).hexdigest()[:12]
+    key = digest({"data": sf.data, "spp": cfg.ref_spp, "chunks": cfg.ref_chunks, "seed": cfg.seed,
+                  "strategy": STRATEGIES[DEFAULT_STRATEGY], "src": _source_hash()})
     W, H = sf.data["camera"]["width"], sf.data["camera"]["height"]
-    path = cache_dir / f"ref_{sf.name}_{W}x{H}_{cfg.ref_spp}spp_{digest}.npz"
+    path = cache_dir / f"ref_{sf.name}_{W}x{H}_{cfg.ref_spp}spp_{key}.npz"
     compile_s = None
     if path.exists() and not fresh:
         z = np.load(path)
@@ -408,17 +321,6 @@ def reference_image(sf, cfg: Config, cache_dir: Path, render_fn: RenderFn, fresh
             "file": path.name, "compile_s": compile_s}
 
 
-def reference_stats(chunks) -> dict:
-    """A reference from independent equal chunks `(k, H, W, 3)`: their average `image`, the `chunks` and their
-    number `chunks_n`, the mean pixel value with its standard error over the chunks, and the average's own RMSE
-    (`reference_rmse` of the two halves), also relative to the mean."""
-    k = chunks.shape[0]
-    mean, se = mean_and_se(chunks.reshape(k, -1).mean(1))
-    r = reference_rmse(chunks[: k // 2].mean(0), chunks[k // 2:].mean(0))
-    return {"image": chunks.mean(0), "chunks": chunks, "chunks_n": k, "mean": mean, "mean_se": se, "rmse": r,
-            "rel_rmse": r / mean}
-
-
 def structure(sf) -> str:
     """What decides the compiled program of a scene file (scenes with equal structure share programs)."""
     d = sf.data
@@ -428,9 +330,10 @@ def structure(sf) -> str:
 
 
 def bench_scene(name: str, cfg: Config, cache_dir: Path, fresh_ref: bool = False, log=print,
-                compiled: dict | None = None) -> dict:
-    """The strategy study on one scene: reference, then every strategy (see `measure_strategy`). `compiled` maps
-    `(structure, strategy)` to `(scene, compile seconds)` of the first compilation seen in this run."""
+                compiled: dict | None = None) -> tuple[dict, dict]:
+    """The strategy study on one scene: reference, then every strategy (see `measure_strategy`); the scene's result
+    and its reference. `compiled` maps `(structure, strategy)` to `(scene, compile seconds)` of the first
+    compilation seen in this run."""
     compiled = {} if compiled is None else compiled
     sf = load(name, cfg.size)
     sig = structure(sf)
@@ -480,48 +383,56 @@ def depth_study(cfg: Config, log=print) -> dict:
     keys = [jax.random.fold_in(key, c) for c in range(n_calls)]  # image c: the same key at every depth
     out = {"width": cfg.depth_size, "height": cfg.depth_size, "spp": spp, "images": n_calls, "spp_per_image": L,
            "strategy": DEFAULT_STRATEGY, "scenes": {}}
-    n_pix = cfg.depth_size ** 2
     for name, ref_depth in zip(cfg.depth_scenes, cfg.depth_refs):
         depths = sorted({d for d in cfg.depths if d < ref_depth} | {ref_depth})
-        per_depth = {}
-        for d in depths:
-            scene = load(name, cfg.depth_size, [f"integrator.max_depth={d}"]).scene
-            # after a warm-up render, which compiles where no earlier render had this structure
-            t = time_calls(lambda c: np.asarray(jf.render(scene, keys[c], L, sampling=sampling), np.float64), n_calls,
-                           keep=True)
-            compile_s = t["compile_s"] or None
-            elapsed = sum(t["wall_s"])
-            per_depth[d] = {"layers": np.stack(t["values"]).reshape(n_calls, n_pix, 3), "time_per_spp_s": elapsed / spp,
-                            "compile_s": compile_s}
-            log(f"  {name} max_depth {d:3d}: {1e3 * elapsed / spp:7.0f} ms/spp at {cfg.depth_size}x{cfg.depth_size}"
-                + (f" (compile {compile_s:.1f} s)" if compile_s is not None else ""))
+        per_depth = {d: _depth_images(name, d, cfg.depth_size, keys, L, sampling, log) for d in depths}
         ref_layers = per_depth[ref_depth]["layers"]  # (images, n_pix, 3)
-        mean_ref = float(ref_layers.mean())
         per_path = ref_layers.sum(-1)  # one path per (image, pixel) when depth_layers_per_call is 1
-        largest_share = float(per_path.max() / per_path.sum()) if per_path.sum() > 0 else 0.0
-        h = n_calls // 2
-        rows = []
-        for d in depths:
-            lay = per_depth[d]["layers"]
-            diff = ref_layers - lay  # per image: the contribution of segments d+1 .. ref_depth (the same paths)
-            m, se = mean_and_se(diff.reshape(n_calls, -1).mean(1))
-            da, db = diff[:h].mean(0), diff[h:].mean(0)
-            b2 = float(np.mean(da * db))
-            noise = float(np.sqrt(np.mean((da - db) ** 2)) / 2)
-            rows.append({
-                "depth": d, "is_reference": d == ref_depth, "mean": float(lay.mean()),
-                "rel_mean_bias": m / mean_ref, "rel_mean_bias_se": se / mean_ref,
-                "rel_pixel_bias": math.sqrt(max(b2, 0.0)) / mean_ref, "rel_pixel_noise": noise / mean_ref,
-                "time_per_spp_s": per_depth[d]["time_per_spp_s"],
-                "paths_per_s": n_pix / per_depth[d]["time_per_spp_s"],
-                "compile_s": per_depth[d]["compile_s"],
-            })
         sf = load(name, cfg.depth_size)
         out["scenes"][name] = {"sigma_t": sf.data["medium"]["sigma_t"] if sf.data.get("medium") else 0.0,
-                               "ref_depth": ref_depth, "mean_ref": mean_ref, "rows": rows,
-                               "largest_path_share": largest_share}
+                               "ref_depth": ref_depth, "mean_ref": float(ref_layers.mean()),
+                               "rows": [_depth_row(d, per_depth[d], ref_layers, d == ref_depth) for d in depths],
+                               "largest_path_share": float(per_path.max() / per_path.sum()) if per_path.sum() > 0
+                               else 0.0}
     out["max_rss_mib_after"] = max_rss_mib()
     return out
+
+
+def _depth_images(name: str, depth: int, size: int, keys: list, spp: int, sampling, log=print) -> dict:
+    """`len(keys)` images of `spp` spp of the scene `name` at `max_depth = depth` with `sampling` (key `keys[c]` for
+    image `c`), timed after a warm-up render, which compiles where no earlier render had this structure: `layers`
+    `(images, pixels, 3)`, `time_per_spp_s` and `compile_s` (None where nothing compiled)."""
+    import jaxfog as jf
+
+    scene = load(name, size, [f"integrator.max_depth={depth}"]).scene
+    n = len(keys)
+    t = time_calls(lambda c: np.asarray(jf.render(scene, keys[c], spp, sampling=sampling), np.float64), n, keep=True)
+    compile_s = t["compile_s"] or None
+    elapsed = sum(t["wall_s"])
+    log(f"  {name} max_depth {depth:3d}: {1e3 * elapsed / (n * spp):7.0f} ms/spp at {size}x{size}"
+        + (f" (compile {compile_s:.1f} s)" if compile_s is not None else ""))
+    return {"layers": np.stack(t["values"]).reshape(n, size * size, 3), "time_per_spp_s": elapsed / (n * spp),
+            "compile_s": compile_s}
+
+
+def _depth_row(depth: int, images: dict, ref_layers, is_reference: bool) -> dict:
+    """One depth's row: its mean, its bias against the reference depth's images `ref_layers` (the same paths, image
+    by image): the mean-image difference with its standard error, the per-pixel RMSE beyond noise
+    (`sqrt(mean(Delta_A * Delta_B))` of two independent halves of the images) and that estimate's noise; its cost."""
+    lay = images["layers"]
+    n_calls, n_pix = lay.shape[:2]
+    mean_ref = float(ref_layers.mean())
+    diff = ref_layers - lay  # per image: the contribution of segments depth+1 .. ref_depth (the same paths)
+    m, se = mean_and_se(diff.reshape(n_calls, -1).mean(1))
+    h = n_calls // 2
+    da, db = diff[:h].mean(0), diff[h:].mean(0)
+    b2 = float(np.mean(da * db))
+    noise = float(np.sqrt(np.mean((da - db) ** 2)) / 2)
+    return {"depth": depth, "is_reference": is_reference, "mean": float(lay.mean()),
+            "rel_mean_bias": m / mean_ref, "rel_mean_bias_se": se / mean_ref,
+            "rel_pixel_bias": math.sqrt(max(b2, 0.0)) / mean_ref, "rel_pixel_noise": noise / mean_ref,
+            "time_per_spp_s": images["time_per_spp_s"], "paths_per_s": n_pix / images["time_per_spp_s"],
+            "compile_s": images["compile_s"]}
 
 
 # ---------------------------------------------------------------------------------------------------- mitsuba
@@ -542,13 +453,43 @@ def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir
         return {"scene": name, "skipped": mr["skipped"]}
     t_jax_after = jax_time_per_spp() if jax_time_per_spp is not None else None
     imgs = mr["images"].astype(np.float64)  # (chunks, H, W, 3)
-    times = mr["times"]
     n, spp = imgs.shape[0], int(mr["spp"])
+    t_per_spp = float(np.mean(mr["times"])) / spp
+    t_mi = 64 * t_per_spp
+    res = {
+        "scene": name, "version": str(mr["version"]), "variant": str(mr["variant"]), "threads": int(mr["threads"]),
+        "spp_per_render": spp, "renders": n, "total_spp": n * spp, "warmup_s": float(mr["warmup_s"]),
+        "time_per_spp_s": t_per_spp, "paths_per_s": cfg.size ** 2 / t_per_spp, "max_rss_mib": float(mr["max_rss_mib"]),
+        **_agreement(imgs, ref), "levels": _running_levels(imgs, mr["times"], spp, ref),
+        **_error64(imgs, spp, ref, t_mi),
+    }
+    rmse64, rmse64_median = res["rmse64_corrected"], res["rmse64_corrected_median"]
+    res["time_to_mitsuba64"] = {sname: _time_to_mitsuba(s["levels"], rmse64, rmse64_median, t_mi)
+                                for sname, s in jax_result["strategies"].items()}
+    if t_jax_before is not None and DEFAULT_STRATEGY in jax_result["strategies"]:
+        lv = jax_result["strategies"][DEFAULT_STRATEGY]["levels"]
+        res["adjacent"], res["variance_based"] = _adjacent(lv, ref, res, t_jax_before, t_jax_after)
+    if jax_draws is not None and rmse64 > 0:
+        res["measured"] = measure_equal_error(jax_draws, cfg, ref, rmse64, rmse64_median, t_mi, log=log)
+    return res
+
+
+def _halves(img) -> dict:
+    """The means of an image's left, right, top and bottom halves (channels averaged)."""
+    g = np.asarray(img, np.float64).mean(-1)
+    H, W = g.shape
+    return {"left": g[:, : W // 2].mean(), "right": g[:, W // 2:].mean(), "top": g[: H // 2].mean(),
+            "bottom": g[H // 2:].mean()}
+
+
+def _agreement(imgs, ref: dict) -> dict:
+    """Mitsuba's images `(n, H, W, 3)` against jaxfog's reference: the image means with their standard errors and z;
+    the 4 x 4 region means (standard errors over the images or chunks) with z per region, also against flipped
+    Mitsuba images (which orientation fits best); the means of the images' halves."""
+    n = imgs.shape[0]
     mi_mean, mi_se = mean_and_se(imgs.reshape(n, -1).mean(1))
     jf_mean, jf_se = ref["mean"], ref["mean_se"]
     z = (jf_mean - mi_mean) / math.hypot(jf_se, mi_se)
-
-    # regions: 4 x 4 block means with standard errors over chunks; also against flipped Mitsuba images
     mb = np.stack([block_means(x) for x in imgs])  # (chunks, 4, 4)
     jb = np.stack([block_means(x) for x in ref["chunks"]])
     mi_b, mi_bse = mb.mean(0), mb.std(0, ddof=1) / math.sqrt(n)
@@ -563,15 +504,18 @@ def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir
         zz = zs(f(mi_b), f(mi_bse))
         orient[label] = {"chi2_per_block": float(np.mean(zz ** 2)), "max_abs_z": float(np.max(np.abs(zz)))}
     z_blocks = zs(mi_b, mi_bse)
+    return {"mean": mi_mean, "mean_se": mi_se, "jaxfog_mean": jf_mean, "jaxfog_mean_se": jf_se,
+            "jaxfog_mean_source": f"reference, {ref['spp']} spp", "z_mean": z, "means_agree": bool(abs(z) < 3.0),
+            "z_blocks": z_blocks.tolist(), "max_abs_z_block": float(np.max(np.abs(z_blocks))),
+            "blocks_jaxfog": jf_b.tolist(), "blocks_mitsuba": mi_b.tolist(), "orientation": orient,
+            "best_orientation": min(orient, key=lambda x: orient[x]["chi2_per_block"]),
+            "halves_jaxfog": _halves(ref["image"]), "halves_mitsuba": _halves(imgs.mean(0))}
 
-    def halves(img):
-        g = np.asarray(img, np.float64).mean(-1)
-        H, W = g.shape
-        return {"left": g[:, : W // 2].mean(), "right": g[:, W // 2:].mean(), "top": g[: H // 2].mean(),
-                "bottom": g[H // 2:].mean()}
 
-    mi_img = imgs.mean(0)
-    # RMSE against the shared reference: running averages, and the average MSE of independent 64-spp images
+def _running_levels(imgs, times, spp: int, ref: dict) -> list[dict]:
+    """The RMSE against the shared reference of the running average of Mitsuba's images, at 1, 2, 4, ... images and
+    all of them, with the summed render time."""
+    n = imgs.shape[0]
     levels, elapsed, acc = [], 0.0, np.zeros_like(imgs[0])
     k = 1
     for i in range(n):
@@ -583,60 +527,53 @@ def mitsuba_compare(name: str, cfg: Config, ref: dict, jax_result: dict, workdir
             levels.append({"spp": spp * (i + 1), "time_s": elapsed, "rmse": raw, "rmse_corrected": corr,
                            "rel_rmse_corrected": corr / ref["mean"]})
             k *= 2
+    return levels
+
+
+def _error64(imgs, spp: int, ref: dict, t_mi: float) -> dict:
+    """Mitsuba's error at 64 spp against the shared reference, with the same statistics as jaxfog's side
+    (`expected_rmse`, the median of the per-image corrected RMSEs), over independent 64-spp images (groups of its
+    renders); `t_mi`, its time for 64 spp, is recorded beside them."""
+    n = imgs.shape[0]
     group = max(1, 64 // spp)
     n_groups = n // group
-    # the same statistics as jaxfog's side (`expected_rmse`, median of the per-image corrected RMSEs)
     images64 = [imgs[g * group:(g + 1) * group].mean(0) for g in range(n_groups)]
     rmse64_raw = math.sqrt(float(np.mean([rmse(x, ref["image"]) ** 2 for x in images64])))
     rmse64, rmse64_se, per_image64 = expected_rmse(images64, ref["image"], ref["rmse"])
-    rmse64_median = float(np.median(per_image64))
-    t_per_spp = float(np.mean(times)) / spp
-    t_mi = 64 * t_per_spp
-    res = {
-        "scene": name, "version": str(mr["version"]), "variant": str(mr["variant"]), "threads": int(mr["threads"]),
-        "spp_per_render": spp, "renders": n, "total_spp": n * spp, "warmup_s": float(mr["warmup_s"]),
-        "time_per_spp_s": t_per_spp, "paths_per_s": cfg.size ** 2 / t_per_spp, "max_rss_mib": float(mr["max_rss_mib"]),
-        "mean": mi_mean, "mean_se": mi_se, "jaxfog_mean": jf_mean, "jaxfog_mean_se": jf_se,
-        "jaxfog_mean_source": f"reference, {ref['spp']} spp", "z_mean": z, "means_agree": bool(abs(z) < 3.0),
-        "z_blocks": z_blocks.tolist(), "max_abs_z_block": float(np.max(np.abs(z_blocks))),
-        "blocks_jaxfog": jf_b.tolist(), "blocks_mitsuba": mi_b.tolist(), "orientation": orient,
-        "best_orientation": min(orient, key=lambda x: orient[x]["chi2_per_block"]),
-        "halves_jaxfog": halves(ref["image"]), "halves_mitsuba": halves(mi_img),
-        "levels": levels, "rmse64": rmse64_raw, "rmse64_corrected": rmse64, "rel_rmse64_corrected": rmse64 / ref["mean"],
-        "rmse64_from_images": n_groups, "time64_s": t_mi, "rmse64_corrected_median": rmse64_median,
-        "rmse64_corrected_se": rmse64_se,
-        "rel_rmse64_per_image": [x / ref["mean"] for x in per_image64],
-        "rel_rmse_all_corrected": corrected_rmse(rmse(mi_img, ref["image"]), ref["rmse"]) / ref["mean"],
+    return {"rmse64": rmse64_raw, "rmse64_corrected": rmse64, "rel_rmse64_corrected": rmse64 / ref["mean"],
+            "rmse64_from_images": n_groups, "time64_s": t_mi, "rmse64_corrected_median": float(np.median(per_image64)),
+            "rmse64_corrected_se": rmse64_se,
+            "rel_rmse64_per_image": [x / ref["mean"] for x in per_image64],
+            "rel_rmse_all_corrected": corrected_rmse(rmse(imgs.mean(0), ref["image"]), ref["rmse"]) / ref["mean"]}
+
+
+def _time_to_mitsuba(levels, rmse64: float, rmse64_median: float, t_mi: float) -> dict:
+    """From one strategy's RMSE curve: its time to Mitsuba's 64-spp error (mean MSE and median image) and the ratio
+    to Mitsuba's time for 64 spp."""
+    t, how = curve_to_rmse(levels, rmse64)
+    t_med, how_med = curve_to_rmse(levels, rmse64_median)
+    return {"time_s": t, "how": how, "ratio_jaxfog_over_mitsuba": t / t_mi, "time_s_median_target": t_med,
+            "how_median_target": how_med, "ratio_median_target": t_med / t_mi}
+
+
+def _adjacent(levels, ref: dict, res: dict, t_before: float, t_after: float) -> tuple[dict, dict]:
+    """The ratios with jaxfog's time per spp measured right before and after Mitsuba's renders (`t_before`,
+    `t_after`): from the default strategy's RMSE curve against spp (`adjacent`), and from the variance of the
+    reference's independent chunks, expected MSE = sigma^2 / spp (`variance_based`)."""
+    rmse64, rmse64_median, t_mi = res["rmse64_corrected"], res["rmse64_corrected_median"], res["time64_s"]
+    spp_mean, how = curve_to_rmse(levels, rmse64, "spp")
+    spp_med, how_med = curve_to_rmse(levels, rmse64_median, "spp")
+    t_adj = 0.5 * (t_before + t_after)
+    adjacent = {
+        "strategy": DEFAULT_STRATEGY, "jaxfog_time_per_spp_s_before": t_before,
+        "jaxfog_time_per_spp_s_after": t_after, "mitsuba_time_per_spp_s": res["time_per_spp_s"],
+        "jaxfog_spp_to_target": spp_mean, "how": how, "ratio": spp_mean * t_adj / t_mi,
+        "jaxfog_spp_to_median_target": spp_med, "how_median": how_med, "ratio_median_target": spp_med * t_adj / t_mi,
     }
-    ratios = {}
-    for sname, s in jax_result["strategies"].items():
-        lv = s["levels"]
-        t, how = time_to_rmse([x["time_s"] for x in lv], [x["rmse_corrected"] for x in lv], rmse64)
-        t_med, how_med = time_to_rmse([x["time_s"] for x in lv], [x["rmse_corrected"] for x in lv], rmse64_median)
-        ratios[sname] = {"time_s": t, "how": how, "ratio_jaxfog_over_mitsuba": t / t_mi,
-                         "time_s_median_target": t_med, "how_median_target": how_med,
-                         "ratio_median_target": t_med / t_mi}
-    res["time_to_mitsuba64"] = ratios
-    if t_jax_before is not None and DEFAULT_STRATEGY in jax_result["strategies"]:
-        lv = jax_result["strategies"][DEFAULT_STRATEGY]["levels"]
-        spps, errs = [x["spp"] for x in lv], [x["rmse_corrected"] for x in lv]
-        spp_mean, how = time_to_rmse(spps, errs, rmse64)
-        spp_med, how_med = time_to_rmse(spps, errs, rmse64_median)
-        t_adj = 0.5 * (t_jax_before + t_jax_after)
-        res["adjacent"] = {
-            "strategy": DEFAULT_STRATEGY, "jaxfog_time_per_spp_s_before": t_jax_before,
-            "jaxfog_time_per_spp_s_after": t_jax_after, "mitsuba_time_per_spp_s": t_per_spp,
-            "jaxfog_spp_to_target": spp_mean, "how": how, "ratio": spp_mean * t_adj / t_mi,
-            "jaxfog_spp_to_median_target": spp_med, "how_median": how_med, "ratio_median_target": spp_med * t_adj / t_mi,
-        }
-        # from the variance of the reference's independent chunks (default strategy): expected MSE = sigma^2 / spp
-        sigma2 = variance_per_spp(ref["chunks"], ref["spp"] // ref["chunks_n"])
-        n_star = sigma2 / rmse64 ** 2
-        res["variance_based"] = {"sigma2_per_spp": sigma2, "from_chunks": ref["chunks_n"],
-                                 "jaxfog_spp_to_target": n_star, "ratio": n_star * t_adj / t_mi}
-    if jax_draws is not None and rmse64 > 0:
-        res["measured"] = measure_equal_error(jax_draws, cfg, ref, rmse64, rmse64_median, t_mi, log=log)
-    return res
+    sigma2 = variance_per_spp(ref["chunks"], ref["spp"] // ref["chunks_n"])
+    n_star = sigma2 / rmse64 ** 2
+    return adjacent, {"sigma2_per_spp": sigma2, "from_chunks": ref["chunks_n"], "jaxfog_spp_to_target": n_star,
+                      "ratio": n_star * t_adj / t_mi}
 
 
 EQUAL_ERROR_TARGETS = {
@@ -679,200 +616,11 @@ def measure_equal_error(jax_draws, cfg: Config, ref: dict, rmse64: float, rmse64
     return {"targets": EQUAL_ERROR_TARGETS, "mitsuba_time64_s": t_mi, **found, "tries": tries}
 
 
-# ====================================================================================================== output
-def _fmt_ms(s: float) -> str:
-    return f"{1e3 * s:.0f}"
-
-
-def format_tables(result: dict) -> str:
-    lines = []
-    for name, sc in result.get("scenes", {}).items():
-        ref = sc["reference"]
-        lines.append("")
-        lines.append(f"== {name} ({sc['width']}x{sc['height']}, max_depth {sc['max_depth']}); reference: default strategy, "
-                     f"{ref['spp']} spp, mean pixel {ref['mean']:.4g} +- {ref['mean_se']:.2g}, its own RMSE "
-                     f"{ref['rmse']:.3g} ({100 * ref['rel_rmse']:.1f}% of the mean, from its halves)")
-        lines.append("relative RMSE (corrected for the reference's own noise) at each spp; time to a common RMSE")
-        levels = [(i, x["spp"]) for i, x in enumerate(next(iter(sc["strategies"].values()))["levels"])]
-        lines.append(format_table([{"strategy": k, **v, "shared": v.get("compiled_by", sc["scene"]) != sc["scene"]}
-                                   for k, v in sc["strategies"].items()], [
-            ("strategy", "strategy"),
-            ("compile s", lambda s: f"{s.get('compile_s_first', s['compile_s']):.1f}" + ("+" if s["shared"] else " ")),
-            ("ms/spp", "time_per_spp_s", _fmt_ms), ("kpath/s", lambda s: s["paths_per_s"] / 1e3, ".1f"),
-            ("XLA MiB", lambda s: (s.get("xla_memory") or {}).get("total_mib"), ".1f"),
-            *((f"@{n}", lambda s, i=i: s["levels"][i], lambda x: f"{x['rel_rmse_corrected']:.3g}"
-               + ("!" if x.get("worst_pixel_share", 0) > ONE_PIXEL else " ")) for i, n in levels),
-            (f"t to {100 * sc['target_rel_rmse']:.1f}%", lambda s: f"{s['time_to_target_s']:.1f}"
-             + ("*" if s["time_to_target_how"] == "extrapolated" else " ")),
-            ("vs default", lambda s: s.get("time_ratio_to_default", float("nan")), ".2f")]))
-        lines.append(f"(! more than {ONE_PIXEL:.0%} of the squared error in one pixel: a firefly; "
-                     "* extrapolated with RMSE ~ t^-1/2; compile = JAX trace + lower + XLA compile of the first "
-                     "compilation, + where it happened for another render of the same structure (reference, earlier "
-                     "scene) and this one reused the program)")
-    vr = result.get("variance_reduction") or {}
-    if vr:
-        lines.append("")
-        lines.append("variance reduction (MSE ratio, corrected RMSE squared): A / B")
-        for name, v in vr.items():
-            for label, r in v.items():
-                if r is None:
-                    continue
-                a = r["at_max_spp"]
-                lines.append(f"  {name:14s} {r['base']} / {r['better']}: at {a['spp']} spp {a['mse_ratio_equal_spp']:.2f} "
-                             f"(equal spp), {a['mse_ratio_equal_time']:.2f} (equal time); geometric mean over spp "
-                             f"levels {r['geomean_equal_spp']:.2f} / {r['geomean_equal_time']:.2f}")
-    dp = result.get("depth")
-    if dp:
-        lines.append("")
-        lines.append(f"== depth against bias ({dp['width']}x{dp['height']}, {dp['spp']} spp, common random numbers, "
-                     "default strategy): bias against the deepest row (reference) relative to its mean; 'pixel bias' is "
-                     "the per-pixel RMSE beyond noise, '(noise)' that estimate's own noise level")
-        rows = []
-        for name, s in dp["scenes"].items():
-            if s.get("largest_path_share", 0) > 0.05:
-                lines.append(f"{name}: one path of the {dp['spp']} x {dp['width']}x{dp['height']} carries "
-                             f"{100 * s['largest_path_share']:.0f}% of the reference's mean: its rows are not resolved")
-            t8 = next((r["time_per_spp_s"] for r in s["rows"] if r["depth"] == 8), None)
-            rows += [{"scene": name, **r, "rel_t": r["time_per_spp_s"] / t8 if t8 else float("nan")} for r in s["rows"]]
-        lines.append(format_table(rows, [
-            ("scene", "scene"), ("depth", "depth"), ("mean", "mean", ".4g"), ("mean bias", "rel_mean_bias", ".2%"),
-            ("+-se", "rel_mean_bias_se", ".2%"), ("pixel bias", "rel_pixel_bias", ".2%"),
-            ("(noise)", "rel_pixel_noise", ".2%"), ("ms/spp", "time_per_spp_s", _fmt_ms),
-            ("x ms/spp@8", "rel_t", ".2f"), ("", lambda r: "(reference)" if r["is_reference"] else "")]))
-        picks = dp.get("picks")
-        max_measured = max((r["depth"] for s in dp["scenes"].values() for r in s["rows"] if not r["is_reference"]),
-                           default=0)
-        if picks:
-            lines.append("cheapest depth within a relative error (pick_depth, metric 'pixel'):")
-            for err, per in picks.items():
-                lines.append(f"  {float(err):6.1%}: " + ", ".join(
-                    f"{n} -> {d if d is not None else 'none measured (deeper than ' + str(max_measured) + ')'}"
-                    for n, d in per.items()))
-    mt = result.get("mitsuba")
-    if mt:
-        lines.append("")
-        if "skipped" in mt:
-            lines.append(f"== Mitsuba 3: skipped ({mt['skipped']})")
-        else:
-            lines.append(f"== Mitsuba {mt['version']} ({mt['variant']}, {mt['threads']} threads, volpath) on {mt['scene']}: "
-                         f"{mt['total_spp']} spp in {mt['renders']} renders, {_fmt_ms(mt['time_per_spp_s'])} ms/spp, "
-                         f"{mt['paths_per_s'] / 1e3:.1f} kpaths/s, warm-up (kernel compile) {mt['warmup_s']:.1f} s")
-            lines.append(f"  mean pixel: jaxfog {mt['jaxfog_mean']:.5f} +- {mt['jaxfog_mean_se']:.5f} "
-                         f"({mt['jaxfog_mean_source']}), Mitsuba {mt['mean']:.5f} +- {mt['mean_se']:.5f}: "
-                         f"z = {mt['z_mean']:+.2f} -> {'agree' if mt['means_agree'] else 'DISAGREE'} (|z| < 3)")
-            lines.append(f"  4x4 regions: max |z| {mt['max_abs_z_block']:.2f}; best orientation: {mt['best_orientation']} "
-                         "(mean z^2 per region: " + ", ".join(f"{k} {v['chi2_per_block']:.2f}"
-                                                               for k, v in mt["orientation"].items()) + ")")
-            hj, hm = mt["halves_jaxfog"], mt["halves_mitsuba"]
-            lines.append("  halves (jaxfog / Mitsuba): " + ", ".join(f"{k} {hj[k]:.4f} / {hm[k]:.4f}" for k in hj))
-            lines.append(f"  Mitsuba RMSE at 64 spp (mean MSE of {mt['rmse64_from_images']} independent 64-spp images, "
-                         f"corrected): {mt['rmse64_corrected']:.4f} ({100 * mt['rel_rmse64_corrected']:.1f}% of the mean; "
-                         f"median image {100 * mt['rmse64_corrected_median'] / mt['jaxfog_mean']:.1f}%; per image "
-                         + " ".join(f"{100 * x:.0f}%" for x in mt["rel_rmse64_per_image"])
-                         + f"), time for 64 spp {mt['time64_s']:.2f} s")
-            ms = mt.get("measured")
-            if ms:
-                for k in ("median_image", "mean_mse"):
-                    r = ms[k]
-                    label = "HEADLINE" if k == "median_image" else "expected"
-                    if r.get("spp") is None:
-                        lines.append(f"  {label} ({k}): jaxfog did not reach Mitsuba's {100 * r['mitsuba_rel_rmse']:.0f}% "
-                                     f"({r['note']})")
-                        continue
-                    lines.append(f"  {label}, measured ({k.replace('_', ' ')} of per-image RMSEs): jaxfog (default) at "
-                                 f"{r['spp']} spp{' (the fewest)' if r['at_fewest_spp'] else ''}: "
-                                 f"{100 * r['jaxfog_rel_rmse']:.0f}% in {_fmt_ms(r['time_s'])} ms per image; Mitsuba at "
-                                 f"64 spp: {100 * r['mitsuba_rel_rmse']:.0f}% in {_fmt_ms(ms['mitsuba_time64_s'])} ms -> "
-                                 f"time-to-equal-error ratio jaxfog / Mitsuba = {r['ratio']:.3f} ({1 / r['ratio']:.1f}x)")
-                lines.append("    jaxfog per spp (" + str(ms["tries"][0]["draws"]) + " images each): " + "; ".join(
-                    f"{t['spp']} spp {_fmt_ms(t['time_s'])} ms, median {100 * t['rel_rmse']['median_image']:.0f}% "
-                    f"mean-MSE {100 * t['rel_rmse']['mean_mse']:.0f}%" for t in ms["tries"]))
-            vb = mt.get("variance_based")
-            if vb:
-                lines.append(f"  from the reference's variance ({vb['from_chunks']} chunks): jaxfog needs "
-                             f"{vb['jaxfog_spp_to_target']:.2f} spp (fractional) -> ratio {vb['ratio']:.3f}")
-            adj = mt.get("adjacent")
-            if adj:
-                lines.append(f"  from the strategy study's single curve (timed next to Mitsuba: jaxfog {_fmt_ms(adj['jaxfog_time_per_spp_s_before'])} / "
-                             f"{_fmt_ms(adj['jaxfog_time_per_spp_s_after'])} ms/spp before / after, Mitsuba "
-                             f"{_fmt_ms(adj['mitsuba_time_per_spp_s'])} ms/spp): jaxfog default needs "
-                             f"{adj['jaxfog_spp_to_target']:.2f} spp ({adj['how']}) for Mitsuba's 64-spp RMSE: "
-                             f"time-to-equal-error ratio jaxfog / Mitsuba = {adj['ratio']:.3f} "
-                             f"(median-image target: {adj['jaxfog_spp_to_median_target']:.2f} spp, "
-                             f"{adj['ratio_median_target']:.3f})")
-                lines.append("  with the strategy study's own timings (taken earlier in the run, under other load):")
-            for sname, r in mt["time_to_mitsuba64"].items():
-                lines.append(f"  jaxfog {sname:12s} reaches it in {r['time_s']:7.2f} s ({r['how']}): time-to-equal-error "
-                             f"ratio jaxfog / Mitsuba = {r['ratio_jaxfog_over_mitsuba']:.3f} (median-image target: "
-                             f"{r['ratio_median_target']:.3f}, {r['how_median_target']})")
-    mem = result.get("memory")
-    if mem:
-        lines.append("")
-        lines.append("peak memory: " + "; ".join(f"{k} {v:.0f} MiB" for k, v in mem.items() if isinstance(v, (int, float))))
-    return "\n".join(lines)
-
-
-def plot_strategies(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    scenes = result["scenes"]
-    n = len(scenes)
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.6), squeeze=False)
-    mt = result.get("mitsuba") or {}
-    for ax, (name, sc) in zip(axes[0], scenes.items()):
-        for sname, s in sc["strategies"].items():
-            lv = [x for x in s["levels"] if x["rel_rmse_corrected"] > 0]
-            ax.loglog([x["time_s"] for x in lv], [x["rel_rmse_corrected"] for x in lv], "o-", ms=3, label=sname)
-        if mt.get("scene") == name and "levels" in mt:
-            lv = [x for x in mt["levels"] if x["rel_rmse_corrected"] > 0]
-            ax.loglog([x["time_s"] for x in lv], [x["rel_rmse_corrected"] for x in lv], "k^--", ms=3,
-                      label=f"Mitsuba {mt['version']}")
-        ax.axhline(sc["reference"]["rel_rmse"], color="grey", ls=":", lw=1, label="reference's own RMSE")
-        ax.set_title(f"{name} ({sc['width']}x{sc['height']})", fontsize=9)
-        ax.set_xlabel("wall time after compilation (s)", fontsize=8)
-        ax.grid(True, which="both", lw=0.3)
-        ax.tick_params(labelsize=7)
-    axes[0][0].set_ylabel("per-pixel RMSE / mean pixel", fontsize=8)
-    axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
-def plot_depth(depth: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(8.4, 3.4))
-    for name, s in depth["scenes"].items():
-        rows = [r for r in s["rows"] if not r["is_reference"]]
-        d = [r["depth"] for r in rows]
-        a1.semilogy(d, [max(r["rel_pixel_bias"], 1e-5) for r in rows], "o-", ms=3, label=f"{name} per-pixel")
-        a1.semilogy(d, [max(abs(r["rel_mean_bias"]), 1e-5) for r in rows], "x--", ms=4, label=f"{name} mean")
-        a2.plot([r["depth"] for r in s["rows"]], [1e3 * r["time_per_spp_s"] for r in s["rows"]], "o-", ms=3, label=name)
-    a1.set_xscale("log", base=2)
-    a2.set_xscale("log", base=2)
-    a1.set_xlabel("max_depth", fontsize=8)
-    a2.set_xlabel("max_depth", fontsize=8)
-    a1.set_ylabel("bias / mean (vs each scene's deepest)", fontsize=8)
-    a2.set_ylabel(f"ms per spp at {depth['width']}x{depth['height']}", fontsize=8)
-    for a in (a1, a2):
-        a.grid(True, which="both", lw=0.3)
-        a.tick_params(labelsize=7)
-        a.legend(fontsize=6)
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
 # ========================================================================================================= CLI
-def configure(p: argparse.ArgumentParser) -> None:
-    """Adds the benchmark's arguments to `p` (`python -m benchmarks.bench`)."""
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of `python -m benchmarks.bench`."""
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="a small, fast smoke run (16x16, few spp)")
     p.add_argument("--out", default=str(OUT), metavar="DIR",
                    help="output folder: bench.json, PNGs, cache/ with the references (default: bench_out in the "
@@ -903,6 +651,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fresh-ref", action="store_true", help="re-render references even if cached")
     p.add_argument("--no-plots", action="store_true")
+    return p
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -931,6 +680,8 @@ def config_from_args(args: argparse.Namespace) -> Config:
 
 def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.01,), plots: bool = True,
                   log=print) -> dict:
+    """The studies of `cfg.parts` in turn; writes `out/bench.json` (and, with `plots`, the PNGs); returns the result.
+    `max_bias`: the relative errors for which `pick_depth` picks each depth scene's cheapest depth."""
     out.mkdir(parents=True, exist_ok=True)
     cache = out / "cache"
     result: dict = {"schema": 1, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": machine_info(),
@@ -938,45 +689,17 @@ def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.0
                     "memory_method": "xla_memory: compiled memory_analysis() of one render batch (argument + output + "
                                      "temporary buffers); max_rss: peak resident set size of the process "
                                      "(VmHWM), Mitsuba's in its own subprocess"}
-    t_start = time.perf_counter()
-    refs, compiled = {}, {}
-    if "strategies" in cfg.parts:
-        result["scenes"] = {}
-        for name in cfg.scenes:
-            res, ref = bench_scene(name, cfg, cache, fresh_ref=fresh_ref, log=log, compiled=compiled)
-            result["scenes"][res["scene"]] = res
-            refs[res["scene"]] = ref
-        result["variance_reduction"] = {}
-        for name, res in result["scenes"].items():
-            result["variance_reduction"][name] = {
-                "equiangular": variance_reduction(res, "free_flight", "equiangular"),
-                "all": variance_reduction(res, "free_flight", "default"),
-            }
+    sw = Stopwatch()
+    refs = _strategy_part(result, cfg, cache, fresh_ref, log) if "strategies" in cfg.parts else {}
     if "depth" in cfg.parts:
         log(f"depth study: {cfg.depth_scenes}, depths {cfg.depths} against {cfg.depth_refs}")
         result["depth"] = depth_study(cfg, log=log)
         result["depth"]["picks"] = {
             str(e): {n: pick_depth(s, e) for n, s in result["depth"]["scenes"].items()} for e in max_bias}
     if "mitsuba" in cfg.parts:
-        name = cfg.mitsuba_scene
-        if name in refs:
-            log(f"Mitsuba 3 on {name}: {cfg.mitsuba_chunks} renders of {cfg.mitsuba_spp} spp")
-            sf = load(name, cfg.size)
-            fn = jaxfog_render_fn(cfg.size * cfg.size * cfg.levels[0])
-            timer = spp_timer(fn, sf.scene, cfg.seed, max(8, cfg.levels[0]))
-            jax_draws = timed_draws(sf.scene, cfg.seed, STRATEGIES[DEFAULT_STRATEGY])
-            result["mitsuba"] = mitsuba_compare(name, cfg, refs[name], result["scenes"][name], cache, log=log,
-                                                jax_time_per_spp=timer, jax_draws=jax_draws)
-        else:
-            result["mitsuba"] = {"scene": name, "skipped": f"{name} is not among the benchmark scenes of this run"}
-    result["memory"] = {"jaxfog process max_rss": max_rss_mib()}
-    mt = result.get("mitsuba") or {}
-    if "max_rss_mib" in mt:
-        result["memory"]["Mitsuba process max_rss"] = mt["max_rss_mib"]
-    for name, sc in (result.get("scenes") or {}).items():
-        result["memory"][f"XLA batch {name} (max over strategies)"] = max(
-            (s["xla_memory"] or {}).get("total_mib", 0.0) for s in sc["strategies"].values())
-    result["total_wall_s"] = time.perf_counter() - t_start
+        result["mitsuba"] = _mitsuba_part(cfg, refs, result.get("scenes"), cache, log)
+    result["memory"] = _memory(result)
+    result["total_wall_s"] = sw.s
     write_json(out / "bench.json", result)
     if plots:
         if result.get("scenes"):
@@ -986,8 +709,56 @@ def run_benchmark(cfg: Config, out: Path, fresh_ref: bool = False, max_bias=(0.0
     return result
 
 
-def run(args: argparse.Namespace) -> int:
-    """Runs the benchmark from parsed arguments; prints the tables; returns the exit code."""
+def _strategy_part(result: dict, cfg: Config, cache: Path, fresh_ref: bool, log) -> dict:
+    """The strategy study of every scene into `result` (`scenes`, `variance_reduction`); returns the references."""
+    refs, compiled = {}, {}
+    result["scenes"] = {}
+    for name in cfg.scenes:
+        res, ref = bench_scene(name, cfg, cache, fresh_ref=fresh_ref, log=log, compiled=compiled)
+        result["scenes"][res["scene"]] = res
+        refs[res["scene"]] = ref
+    result["variance_reduction"] = {}
+    for name, res in result["scenes"].items():
+        result["variance_reduction"][name] = {
+            "equiangular": variance_reduction(res, "free_flight", "equiangular"),
+            "all": variance_reduction(res, "free_flight", "default"),
+        }
+    return refs
+
+
+def _mitsuba_part(cfg: Config, refs: dict, scenes: dict | None, cache: Path, log) -> dict:
+    """`mitsuba_compare` on `cfg.mitsuba_scene`, with jaxfog timed beside Mitsuba; skipped where the strategy study
+    did not run on that scene."""
+    name = cfg.mitsuba_scene
+    if name not in refs:
+        return {"scene": name, "skipped": f"{name} is not among the benchmark scenes of this run"}
+    log(f"Mitsuba 3 on {name}: {cfg.mitsuba_chunks} renders of {cfg.mitsuba_spp} spp")
+    sf = load(name, cfg.size)
+    fn = jaxfog_render_fn(cfg.size * cfg.size * cfg.levels[0])
+    timer = spp_timer(fn, sf.scene, cfg.seed, max(8, cfg.levels[0]))
+    jax_draws = timed_draws(sf.scene, cfg.seed, STRATEGIES[DEFAULT_STRATEGY])
+    return mitsuba_compare(name, cfg, refs[name], scenes[name], cache, log=log, jax_time_per_spp=timer,
+                           jax_draws=jax_draws)
+
+
+def _memory(result: dict) -> dict:
+    """The peak memory of the run: this process's, Mitsuba's process's and XLA's largest batch per scene (MiB)."""
+    mem = {"jaxfog process max_rss": max_rss_mib()}
+    mt = result.get("mitsuba") or {}
+    if "max_rss_mib" in mt:
+        mem["Mitsuba process max_rss"] = mt["max_rss_mib"]
+    for name, sc in (result.get("scenes") or {}).items():
+        mem[f"XLA batch {name} (max over strategies)"] = max(
+            (s["xla_memory"] or {}).get("total_mib", 0.0) for s in sc["strategies"].values())
+    return mem
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Runs the benchmark (`python -m benchmarks.bench ...`); prints the tables; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    from jaxfog import use_cpu_cores
+
+    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     try:
         cfg = config_from_args(args)
     except ValueError as e:
@@ -997,25 +768,8 @@ def run(args: argparse.Namespace) -> int:
     result = run_benchmark(cfg, out, fresh_ref=args.fresh_ref, max_bias=tuple(args.max_bias),
                            plots=not args.no_plots, log=stderr_log)
     print(format_tables(result))
-    print(f"\nwrote {out / 'bench.json'}" + ("" if args.no_plots else " and PNGs")
-          + f" in {result['total_wall_s']:.0f} s (load average {result['machine']['loadavg_start'][0]:.1f} at start, "
-            f"{result['machine']['loadavg_end'][0]:.1f} at end)")
+    print("\n" + run_summary(f"{out / 'bench.json'}" + ("" if args.no_plots else " and PNGs"), result))
     return 0
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.bench", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    configure(p)
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    from jaxfog import use_cpu_cores
-
-    use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
-    return run(args)
 
 
 if __name__ == "__main__":  # pragma: no cover

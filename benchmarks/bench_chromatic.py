@@ -14,7 +14,6 @@ in `docs/results/chromatic.md`.
 from __future__ import annotations
 
 import argparse
-import json
 
 import equinox as eqx
 import jax
@@ -22,7 +21,7 @@ import numpy as np
 
 import jaxfog as jf
 
-from .common import command, interleave, out_dir, write_json
+from .common import command, interleave, out_dir, print_json, write_json
 
 MEDIA = {
     "haze (0.5, 1.5, 3.0)": dict(sigma_t=(0.5, 1.5, 3.0), albedo=(0.9, 0.9, 0.9)),
@@ -73,7 +72,7 @@ def main(argv=None):
         rows.append(dict(medium=name, **kw, spp=a.spp, keys=a.keys, size=a.size, mis=res[True], scalar=res[False],
                          grey_reference=ref,
                          scalar_mse_at_equal_time=[m * ratio for m in res[False]["mse"]]))
-        print(json.dumps(rows[-1]), flush=True)
+        print_json(rows[-1])
     write_json(a.out, dict(scene=a.scene, rows=rows, command=command("python -m benchmarks.bench_chromatic", argv)))
     print(f"wrote {a.out}")
 

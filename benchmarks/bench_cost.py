@@ -27,14 +27,13 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import statistics
 import sys
 import tempfile
 from pathlib import Path
 
 from benchmarks.bench_mitsuba import run_mitsuba
-from benchmarks.common import command, git_commit, out_dir, print_table, scene_path, time_calls, write_json
+from benchmarks.common import command, git_commit, out_dir, print_table, read_json, scene_path, time_calls, write_json
 
 CONFIGS = {
     "jaxfog default": {},
@@ -85,7 +84,7 @@ def pooled_ratios(results: list[dict]) -> dict:
 
 def _pooled_table(paths) -> None:
     """`--pool`: the ratios of the block pairs of earlier runs' `cost.json` files, pooled."""
-    results = [json.loads(Path(f).read_text()) for f in paths]
+    results = [read_json(f) for f in paths]
     print(f"{len(results)} runs pooled; ratio of each jaxfog block's median to the Mitsuba block beside it")
     rows = [{"row": name, **r} for name, r in pooled_ratios(results).items()]
     print_table(rows, [("row", "row"), ("pairs", "n"), *((h, k, ".3f") for h, k in (
@@ -105,7 +104,8 @@ def _mitsuba_block(path: Path, spp: int, reps: int, seed: int, variant: str) -> 
             "mean": float(m["images"].mean())}
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of `python -m benchmarks.bench_cost`."""
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_cost", description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", default="spot_fog", help="a shipped scene's name or a .json path (default spot_fog)")
     p.add_argument("--blocks", type=int, default=4, help="alternations of jaxfog and Mitsuba blocks (default 4)")
@@ -117,6 +117,34 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=str(out_dir("cost")), help="output folder (default bench_out/cost)")
     p.add_argument("--pool", nargs="+", metavar="COST_JSON",
                    help="no run: pool the block pairs of these earlier runs' cost.json files and print the ratios")
+    return p
+
+
+def run_blocks(fns: dict, path: Path, args) -> tuple[dict, dict, list, list]:
+    """`args.blocks` alternations of a jaxfog block (`args.reps` renders of each of `fns`) and a Mitsuba block (one
+    subprocess, unless `--no-mitsuba`): every timed render per configuration (ms/spp; ms/call for the per-call row),
+    each block's median per configuration, every Mitsuba render (ms/spp) and each Mitsuba block's record."""
+    per = {name: [] for name in fns}
+    block_medians = {name: [] for name in fns}
+    mitsuba, mitsuba_blocks = [], []
+    for b in range(args.blocks):
+        for name, fn in fns.items():
+            scale = 1000.0 if name == "jaxfog per call" else 1000.0 / args.spp
+            t = time_calls(fn, args.reps, warmup=0)
+            per[name] += [x * scale for x in t["wall_s"]]
+            block_medians[name].append(t["median_s"] * scale)
+        if not args.no_mitsuba:
+            m = _mitsuba_block(path, args.mitsuba_spp, args.reps, seed=100 * b, variant=args.mitsuba_variant)
+            mitsuba += m.pop("ms")
+            mitsuba_blocks.append(m)
+        print(f"block {b + 1}/{args.blocks}: " + ", ".join(f"{k} {statistics.median(v[-args.reps:]):.2f}"
+                                                          for k, v in per.items())
+              + (f", Mitsuba {statistics.median(mitsuba[-args.reps:]):.2f}" if mitsuba else ""), flush=True)
+    return per, block_medians, mitsuba, mitsuba_blocks
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = build_parser()
     args = p.parse_args(argv)
     if args.pool:
         _pooled_table(args.pool)
@@ -144,23 +172,7 @@ def main(argv: list[str] | None = None) -> int:
            for name, kw in CONFIGS.items()}
     fns["jaxfog per call"] = lambda _: jaxfog.render(small, jax.random.key(next(keys)), 1).block_until_ready()
     first = {name: time_calls(fn, 1, warmup=0)["wall_s"][0] for name, fn in fns.items()}  # compile included
-
-    per = {name: [] for name in fns}
-    block_medians = {name: [] for name in fns}
-    mitsuba, mitsuba_blocks = [], []
-    for b in range(args.blocks):
-        for name, fn in fns.items():
-            scale = 1000.0 if name == "jaxfog per call" else 1000.0 / args.spp
-            t = time_calls(fn, args.reps, warmup=0)
-            per[name] += [x * scale for x in t["wall_s"]]
-            block_medians[name].append(t["median_s"] * scale)
-        if not args.no_mitsuba:
-            m = _mitsuba_block(path, args.mitsuba_spp, args.reps, seed=100 * b, variant=args.mitsuba_variant)
-            mitsuba += m.pop("ms")
-            mitsuba_blocks.append(m)
-        print(f"block {b + 1}/{args.blocks}: " + ", ".join(f"{k} {statistics.median(v[-args.reps:]):.2f}"
-                                                          for k, v in per.items())
-              + (f", Mitsuba {statistics.median(mitsuba[-args.reps:]):.2f}" if mitsuba else ""), flush=True)
+    per, block_medians, mitsuba, mitsuba_blocks = run_blocks(fns, path, args)
 
     rows = table_rows(per, block_medians, mitsuba, mitsuba_blocks, first)
     print()

@@ -35,7 +35,7 @@ The measurement (`run_benchmark`):
 
 1. Cycles' converged reference: `ref_chunks` independent images of `ref_spp / ref_chunks` spp with
    `REFERENCE_SETTING` (equiangular), cached in `DIR/cache/`; its own noise is `RMSE(half_A - half_B) / 2`
-   (`benchmarks.bench.reference_rmse`), and a corrected RMSE is `sqrt(raw^2 - ref^2)`.
+   (`benchmarks.bench_stats.reference_rmse`), and a corrected RMSE is `sqrt(raw^2 - ref^2)`.
 2. jaxfog's reference: `benchmarks.bench.reference_image` (default strategy, its cache in the same folder).
 3. Cycles' settings (`SETTINGS`: volume sampling distance / equiangular / MIS, each with and without path guiding):
    `screen_images` images of `cycles_spp` spp each; the relative error of a setting is the median over its images
@@ -72,8 +72,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO, block_means, format_table, load, machine_info, mean_and_se, out_dir, save_npz
-from benchmarks.common import stderr_log, with_args, write_json
+from benchmarks.bench_stats import expected_rmse, reference_stats
+from benchmarks.common import REPO, Stopwatch, block_means, digest, format_table, load, machine_info, mean_and_se
+from benchmarks.common import out_dir, run_summary, save_npz, stderr_log, with_args, write_json
 
 CYCLES_SCRIPT = REPO / "benchmarks" / "cycles_render.py"
 
@@ -287,7 +288,7 @@ def run_cycles(params: dict, jobs: list[dict], python: str, workdir: Path, timeo
         cmd = [python, str(CYCLES_SCRIPT), str(job_path), str(out_path)]
         if os.name == "posix" and os.path.exists("/usr/bin/nice") and os.nice(0) < 5:
             cmd = ["/usr/bin/nice", "-n", str(5 - os.nice(0)), *cmd]
-        t0 = time.perf_counter()
+        sw = Stopwatch()
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         err_lines = []
         for line in p.stderr:
@@ -300,7 +301,7 @@ def run_cycles(params: dict, jobs: list[dict], python: str, workdir: Path, timeo
             raise RuntimeError(f"Cycles failed (exit code {rc}): " + " | ".join(err_lines[-5:]))
         z = np.load(out_path)
         res = {"setup_s": float(z["setup_s"]), "version": str(z["version"]), "threads": int(z["threads"]),
-               "process_s": time.perf_counter() - t0, "jobs": []}
+               "process_s": sw.s, "jobs": []}
         for k in range(len(jobs)):
             res["jobs"].append({"images": z[f"images_{k}"], "times": z[f"times_{k}"],
                                 "warmup_s": float(z[f"warmup_{k}"])})
@@ -311,13 +312,10 @@ def cycles_reference(params: dict, cfg: Config, python: str, cache_dir: Path, ve
                      log=print) -> dict:
     """Cycles' converged reference (`REFERENCE_SETTING`, `ref_chunks` independent images), cached in `cache_dir`
     keyed by the scene parameters, the spp, the seed, Blender's version and the Cycles script."""
-    from benchmarks.bench import reference_stats
-
-    key = json.dumps({"params": params, "spp": cfg.ref_spp, "chunks": cfg.ref_chunks, "seed": cfg.seed,
-                      "setting": SETTINGS[REFERENCE_SETTING], "version": version,
-                      "script": hashlib.sha256(CYCLES_SCRIPT.read_bytes()).hexdigest()}, sort_keys=True)
-    digest = hashlib.sha256(key.encode()).hexdigest()[:12]
-    path = cache_dir / f"cycles_ref_{params['width']}x{params['height']}_{cfg.ref_spp}spp_{digest}.npz"
+    key = digest({"params": params, "spp": cfg.ref_spp, "chunks": cfg.ref_chunks, "seed": cfg.seed,
+                  "setting": SETTINGS[REFERENCE_SETTING], "version": version,
+                  "script": hashlib.sha256(CYCLES_SCRIPT.read_bytes()).hexdigest()})
+    path = cache_dir / f"cycles_ref_{params['width']}x{params['height']}_{cfg.ref_spp}spp_{key}.npz"
     if path.exists() and not fresh:
         z = np.load(path)
         chunks, times, cached = z["chunks"], z["times"], True
@@ -336,9 +334,7 @@ def cycles_reference(params: dict, cfg: Config, python: str, cache_dir: Path, ve
 
 def error_stats(images, ref: dict) -> dict:
     """The corrected per-image RMSEs against `ref` (its own noise removed), relative to its mean: median (the
-    statistic compared), mean-MSE (`benchmarks.bench.expected_rmse`) and all of them."""
-    from benchmarks.bench import expected_rmse
-
+    statistic compared), mean-MSE (`benchmarks.bench_stats.expected_rmse`) and all of them."""
     e, se, per = expected_rmse(list(images), ref["image"], ref["rmse"])
     rel = [x / ref["mean"] for x in per]
     return {"median": float(np.median(rel)), "mean_mse": e / ref["mean"], "mean_mse_se": se / ref["mean"],
@@ -411,7 +407,7 @@ def run_benchmark(cfg: Config, out: Path, python: str, version: str, fresh_ref: 
 
     out.mkdir(parents=True, exist_ok=True)
     cache = out / "cache"
-    t_start = time.perf_counter()
+    sw = Stopwatch()
     sf = load(cfg.scene, cfg.size)
     params = to_cycles(sf.data, threads=cfg.threads)
     result = {"schema": 1, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": machine_info(),
@@ -423,45 +419,55 @@ def run_benchmark(cfg: Config, out: Path, python: str, version: str, fresh_ref: 
     cref = cycles_reference(params, cfg, python, cache, version, fresh=fresh_ref, log=log)
     for name, r in (("jaxfog", jref), ("cycles", cref)):
         result[f"{name}_reference"] = {k: v for k, v in r.items() if k not in ("image", "chunks")}
-    ratio = jref["mean"] / cref["mean"]
-    result["means"] = {"jaxfog": jref["mean"], "jaxfog_se": jref["mean_se"], "cycles": cref["mean"],
-                       "cycles_se": cref["mean_se"], "ratio_jaxfog_over_cycles": ratio,
-                       "ratio_se": ratio * math.hypot(jref["mean_se"] / jref["mean"], cref["mean_se"] / cref["mean"])}
-    result["means"]["blocks_jaxfog"] = block_means(jref["image"]).tolist()
-    result["means"]["blocks_cycles"] = block_means(cref["image"]).tolist()
+    result["means"] = _means(jref, cref)
 
     log(f"Cycles settings: {', '.join(cfg.settings)} ({cfg.screen_images} images of {cfg.cycles_spp} spp each)")
     screen = screen_settings(params, cfg, python, cref, cache, log=log)
     result["screen"] = screen
     best = screen["best"]
     log(f"best setting: {best}; target: {cfg.draws} images of {cfg.cycles_spp} spp")
-
     t_before = jax_time_per_spp()
     tr = run_cycles(params, [{"name": best, "settings": SETTINGS[best], "spp": cfg.cycles_spp,
                               "seeds": [3_000_000 + 100_000 * cfg.seed + i for i in range(cfg.draws)]}],
                     python, cache, log=log)
     t_after = jax_time_per_spp()
-    jt = tr["jobs"][0]
-    st = error_stats(jt["images"], cref)
-    t_cyc = float(np.mean(jt["times"]))
-    target = {"setting": best, **SETTINGS[best], "images": cfg.draws, "spp": cfg.cycles_spp, "time_s": t_cyc,
-              "time_s_median": float(np.median(jt["times"])), "ms_per_spp": 1e3 * t_cyc / cfg.cycles_spp,
-              "rel_rmse_median": st["median"], "rel_rmse_mean_mse": st["mean_mse"],
-              "rel_rmse_per_image": st["per_image"], "setup_s": tr["setup_s"],
-              "first_render_s": jt["warmup_s"], "process_s": tr["process_s"],
-              "mean": mean_and_se(jt["images"].reshape(cfg.draws, -1).mean(1))}
+    target, st = _target(tr, cfg, cref, best)
     result["cycles_target"] = target
     result["jaxfog_ms_per_spp"] = {"before": 1e3 * t_before, "after": 1e3 * t_after}
     log(f"jaxfog to Cycles' median error {st['median']:.3f} ({cfg.draws} images each)")
+    t_cyc = target["time_s"]
     eq = equal_error(jax_draws, jref, st["median"], cfg.draws, t_cyc, cfg.max_jax_spp, log=log)
     if eq["reached"]:  # with jaxfog's ms/spp timed right before and after Cycles' images (no padding, same load)
         eq["ratio_adjacent"] = eq["spp"] * 0.5e-3 * (result["jaxfog_ms_per_spp"]["before"]
                                                     + result["jaxfog_ms_per_spp"]["after"]) / t_cyc
     result["equal_error"] = eq
     result["max_rss_mib_jaxfog"] = max_rss_mib()
-    result["total_wall_s"] = time.perf_counter() - t_start
+    result["total_wall_s"] = sw.s
     write_json(out / "cycles.json", result)
     return result
+
+
+def _means(jref: dict, cref: dict) -> dict:
+    """The two references' image means side by side: their ratio with its standard error, and the 4 x 4 regions."""
+    ratio = jref["mean"] / cref["mean"]
+    return {"jaxfog": jref["mean"], "jaxfog_se": jref["mean_se"], "cycles": cref["mean"],
+            "cycles_se": cref["mean_se"], "ratio_jaxfog_over_cycles": ratio,
+            "ratio_se": ratio * math.hypot(jref["mean_se"] / jref["mean"], cref["mean_se"] / cref["mean"]),
+            "blocks_jaxfog": block_means(jref["image"]).tolist(), "blocks_cycles": block_means(cref["image"]).tolist()}
+
+
+def _target(tr: dict, cfg: Config, cref: dict, best: str) -> tuple[dict, dict]:
+    """The target's record from its Cycles run `tr` (`draws` images of `cycles_spp` spp with the setting `best`), and
+    its `error_stats` against Cycles' reference."""
+    jt = tr["jobs"][0]
+    st = error_stats(jt["images"], cref)
+    t_cyc = float(np.mean(jt["times"]))
+    return {"setting": best, **SETTINGS[best], "images": cfg.draws, "spp": cfg.cycles_spp, "time_s": t_cyc,
+            "time_s_median": float(np.median(jt["times"])), "ms_per_spp": 1e3 * t_cyc / cfg.cycles_spp,
+            "rel_rmse_median": st["median"], "rel_rmse_mean_mse": st["mean_mse"],
+            "rel_rmse_per_image": st["per_image"], "setup_s": tr["setup_s"],
+            "first_render_s": jt["warmup_s"], "process_s": tr["process_s"],
+            "mean": mean_and_se(jt["images"].reshape(cfg.draws, -1).mean(1))}, st
 
 
 # ====================================================================================================== output
@@ -539,8 +545,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     result = run_benchmark(cfg, out, python, version, fresh_ref=args.fresh_ref, log=stderr_log)
     print(format_tables(result))
-    print(f"\nwrote {out / 'cycles.json'} in {result['total_wall_s']:.0f} s (load average "
-          f"{result['machine']['loadavg_start'][0]:.1f} at start, {result['machine']['loadavg_end'][0]:.1f} at end)")
+    print("\n" + run_summary(f"{out / 'cycles.json'}", result))
     return 0
 
 

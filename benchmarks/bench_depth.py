@@ -37,12 +37,11 @@ import datetime
 import json
 import os
 import sys
-import time
 
 import numpy as np
 
-from .common import block_means, command, interleave, load, machine_info, mean_and_se, out_dir, save_npz, scene_path
-from .common import write_json
+from .common import Stopwatch, block_means, command, interleave, load, machine_info, mean_and_se, out_dir, read_json
+from .common import save_npz, scene_path, write_json
 
 
 def timing(size: int, spp: int, rounds: int, log=print) -> dict:
@@ -146,14 +145,14 @@ def _cached_images(path, render_one, n: int, log=print, label: str = "") -> tupl
         z = np.load(path)
         have = list(z["images"])
         secs = list(z["seconds"]) if "seconds" in z.files else [float("nan")] * len(have)
-    t_start = time.perf_counter()
+    total = Stopwatch()
     for k in range(len(have), n):
-        t0 = time.perf_counter()
-        have.append(np.asarray(render_one(k), np.float32))
-        secs.append(time.perf_counter() - t0)
+        with Stopwatch() as sw:
+            have.append(np.asarray(render_one(k), np.float32))
+        secs.append(sw.s)
         if path is not None and ((k + 1) % 8 == 0 or k + 1 == n):
             save_npz(path, images=np.stack(have), seconds=np.asarray(secs))
-            log(f"  {label}: {k + 1}/{n} images, {time.perf_counter() - t_start:.0f} s")
+            log(f"  {label}: {k + 1}/{n} images, {total.s:.0f} s")
     return have[:n], secs[:n]
 
 
@@ -430,35 +429,50 @@ def depth_limit(size: int, n_images: int, spp: int, depths=(32, 64, 128), key: i
         log(f"  depth {b} - depth {a} (same paths): {m:.4g} +- {se:.2g} = {100 * m / ref:+.2f}% +- "
             f"{100 * se / ref:.2f}% of depth {depths[-1]}, z {m / se:+.2f}")
     if plain_images:
-        # the unbiased render without jaxfog's light-seeking techniques (no equiangular sampling, no light-angle
-        # lobe, no equiangular vertices): next-event estimation from the free-flight vertices only, as in Mitsuba's
-        # volpath (but with the exact transmittance): the same expectation, a different (heavy-tailed) estimator
-        opts = jf.SamplingOptions(equiangular=False, light_lobe=0.0, distance_mix=0.0)
-        sc = load("spot_fog_dense", size, ["integrator.max_depth=-1"]).scene
-        p = None if cache is None else os.path.join(cache, f"plain_{size}_jaxfog_d-1_k{key + 1}_spp{spp}.npz")
-        im, secs = _cached_images(p, lambda k: jf.render(sc, jax.random.fold_in(jax.random.key(key + 1), k), spp,
-                                                         sampling=opts), plain_images, log, "jaxfog -1 plain")
-        out["plain_vs_default"] = compare_images(im, imgs_full[-1], "jaxfog -1 plain vs jaxfog -1 (default)", log)
-        out["plain_vs_default"]["seconds_per_image"] = float(np.nanmedian(secs))
-        # and its light beyond depth 32: plain depths 32 and 64 with the same keys (paired), against the default's
-        pl = {}
-        for d in depths[:2]:
-            sc = load("spot_fog_dense", size, [f"integrator.max_depth={d}"]).scene
-            p = None if cache is None else os.path.join(cache, f"plain_{size}_jaxfog_d{d}_k{key + 1}_spp{spp}.npz")
-            im, _ = _cached_images(p, lambda k: jf.render(sc, jax.random.fold_in(jax.random.key(key + 1), k), spp,
-                                                          sampling=opts), n_images, log, f"jaxfog {d} plain")
-            pl[d] = np.asarray(im, np.float64).mean(axis=(1, 2, 3))
-        a, b = depths[:2]
-        m, se = mean_and_se(pl[b] - pl[a])
-        out["plain_deep"] = {"depths": [a, b], "means": {str(d): list(map(float, mean_and_se(pl[d]))) for d in pl},
-                             "diff": float(m), "diff_se": float(se), "rel": float(m / pl[a].mean()),
-                             "rel_se": float(se / pl[a].mean())}
-        log(f"  plain: depth {b} - depth {a} (same paths): {100 * m / pl[a].mean():+.1f}% +- "
-            f"{100 * se / pl[a].mean():.1f}% of depth {a}")
+        out.update(_plain_parts(size, n_images, spp, depths, key, cache, plain_images, imgs_full[-1], log))
     return out
 
 
-def main(argv=None) -> int:
+def _plain_parts(size: int, n_images: int, spp: int, depths, key: int, cache, plain_images: int, default_imgs,
+                 log=print) -> dict:
+    """`depth_limit`'s comparison of the unbiased render without jaxfog's light-seeking techniques (keys
+    fold_in(key(key + 1), k)) with the default one (`default_imgs`): `plain_vs_default`, and its light beyond the
+    first of `depths` (`plain_deep`)."""
+    import jax
+
+    import jaxfog as jf
+
+    out = {}
+    # the unbiased render without jaxfog's light-seeking techniques (no equiangular sampling, no light-angle
+    # lobe, no equiangular vertices): next-event estimation from the free-flight vertices only, as in Mitsuba's
+    # volpath (but with the exact transmittance): the same expectation, a different (heavy-tailed) estimator
+    opts = jf.SamplingOptions(equiangular=False, light_lobe=0.0, distance_mix=0.0)
+    sc = load("spot_fog_dense", size, ["integrator.max_depth=-1"]).scene
+    p = None if cache is None else os.path.join(cache, f"plain_{size}_jaxfog_d-1_k{key + 1}_spp{spp}.npz")
+    im, secs = _cached_images(p, lambda k: jf.render(sc, jax.random.fold_in(jax.random.key(key + 1), k), spp,
+                                                     sampling=opts), plain_images, log, "jaxfog -1 plain")
+    out["plain_vs_default"] = compare_images(im, default_imgs, "jaxfog -1 plain vs jaxfog -1 (default)", log)
+    out["plain_vs_default"]["seconds_per_image"] = float(np.nanmedian(secs))
+    # and its light beyond depth 32: plain depths 32 and 64 with the same keys (paired), against the default's
+    pl = {}
+    for d in depths[:2]:
+        sc = load("spot_fog_dense", size, [f"integrator.max_depth={d}"]).scene
+        p = None if cache is None else os.path.join(cache, f"plain_{size}_jaxfog_d{d}_k{key + 1}_spp{spp}.npz")
+        im, _ = _cached_images(p, lambda k: jf.render(sc, jax.random.fold_in(jax.random.key(key + 1), k), spp,
+                                                      sampling=opts), n_images, log, f"jaxfog {d} plain")
+        pl[d] = np.asarray(im, np.float64).mean(axis=(1, 2, 3))
+    a, b = depths[:2]
+    m, se = mean_and_se(pl[b] - pl[a])
+    out["plain_deep"] = {"depths": [a, b], "means": {str(d): list(map(float, mean_and_se(pl[d]))) for d in pl},
+                         "diff": float(m), "diff_se": float(se), "rel": float(m / pl[a].mean()),
+                         "rel_se": float(se / pl[a].mean())}
+    log(f"  plain: depth {b} - depth {a} (same paths): {100 * m / pl[a].mean():+.1f}% +- "
+        f"{100 * se / pl[a].mean():.1f}% of depth {a}")
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of `python -m benchmarks.bench_depth`."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--parts", nargs="+", choices=("timing", "dense", "area", "box", "limit", "tails"),
                    default=["timing", "dense"],
@@ -501,24 +515,13 @@ def main(argv=None) -> int:
     p.add_argument("--cache", default=None, help="folder for the cross-check's images (resumable; default none)")
     p.add_argument("--out", default=str(out_dir("bench_depth")),
                    help="output folder of bench_depth.json (default bench_out/bench_depth)")
-    args = p.parse_args(argv)
-    import jaxfog as jf
+    return p
 
-    jf.use_cpu_cores()
-    if args.cache:
-        os.makedirs(args.cache, exist_ok=True)
-    elif "tails" in args.parts:
-        p.error("--parts tails needs --cache (it reads the dense and area parts' images)")
-    out_json = os.path.join(args.out, "bench_depth.json")
-    result = {}
-    if os.path.exists(out_json):
-        with open(out_json) as fh:
-            result = json.load(fh)
-    result["machine"] = machine_info()
-    cmd = command("python -m benchmarks.bench_depth", argv)
-    sides = tuple(args.sides)
+
+def _studies(args, sides: tuple) -> dict:
+    """part -> (the study, a function of no argument; what the JSON keeps beside its result)."""
     cross = dict(cache=args.cache, variant=args.mitsuba_variant, key_offset=args.key_offset)
-    studies = {  # part -> (the study, what the JSON keeps beside its result)
+    return {
         "timing": (lambda: timing(args.size, args.spp, args.rounds), {}),
         "dense": (lambda: dense_vs_mitsuba(args.dense_size, args.dense_images, args.dense_spp, args.mitsuba_images,
                                            args.mitsuba_spp, args.fixed_depth, args.fixed_images, args.fixed_spp,
@@ -533,6 +536,24 @@ def main(argv=None) -> int:
                                       cache=args.cache, plain_images=args.plain_images), {}),
         "tails": (lambda: tails(args.cache, args.path_images, args.spot_path_images, sides=sides), {}),
     }
+
+
+def main(argv=None) -> int:
+    p = build_parser()
+    args = p.parse_args(argv)
+    import jaxfog as jf
+
+    jf.use_cpu_cores()
+    if args.cache:
+        os.makedirs(args.cache, exist_ok=True)
+    elif "tails" in args.parts:
+        p.error("--parts tails needs --cache (it reads the dense and area parts' images)")
+    out_json = os.path.join(args.out, "bench_depth.json")
+    result = read_json(out_json, {})
+    result["machine"] = machine_info()
+    cmd = command("python -m benchmarks.bench_depth", argv)
+    sides = tuple(args.sides)
+    studies = _studies(args, sides)
     result.setdefault("runs", {})
     for part in studies:
         if part not in args.parts:

@@ -37,7 +37,6 @@ import json
 import math
 import subprocess
 import sys
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -45,14 +44,18 @@ import numpy as np
 
 from benchmarks.common import (
     REPO,
+    Stopwatch,
     block_means,
     compile_timed,
     format_table,
-    json_default,
     load,
     machine_info,
     mean_and_se,
     memory_dict,
+    print_json,
+    pyplot,
+    run_summary,
+    save_figure,
     stderr_log,
     subprocess_env,
     time_calls,
@@ -412,11 +415,7 @@ def format_tables(result: dict) -> str:
 
 
 def plot(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     error = result["error"]
     scenes = list(error)
     fig, axes = plt.subplots(len(scenes), 3, figsize=(12, 3.4 * len(scenes)), squeeze=False)
@@ -436,14 +435,12 @@ def plot(result: dict, path: Path) -> None:
             ax.tick_params(labelsize=7)
             ax.grid(True, which="both", alpha=0.3)
     axes[0, 0].legend(fontsize=7, title="solid: mean image, dashed: blocks", title_fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=70)
-    plt.close(fig)
+    save_figure(fig, path, dpi=70)
 
 
 def run_benchmark(cfg: Config, out: Path, plots: bool = True, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
+    sw = Stopwatch()
     result = {"config": asdict(cfg), "machine": machine_info()}
     if "error" in cfg.parts:
         result["error"] = error_study(cfg, log=log)
@@ -452,7 +449,7 @@ def run_benchmark(cfg: Config, out: Path, plots: bool = True, log=print) -> dict
         result["modes"] = mode_study(cfg, log=log)
     if "note" in cfg.parts:
         result["note"] = note_study(cfg, log=log)
-    result["total_wall_s"] = time.perf_counter() - t0
+    result["total_wall_s"] = sw.s
     write_json(out / "bench_grad.json", result)
     if plots and "error" in result:
         plot(result, out / "grad_rmse_vs_time.png")
@@ -475,13 +472,12 @@ def main(argv: list[str] | None = None) -> int:
     use_cpu_cores()  # every core as a JAX device (a no-op once JAX has started, e.g. under pytest)
     if args._mode:
         size, spp, depth, runs = json.loads(args._mode_args)
-        print(json.dumps(_mode_child(args._mode, size, spp, depth, runs), default=json_default))
+        print_json(_mode_child(args._mode, size, spp, depth, runs))
         return 0
     cfg = with_args(QUICK if args.quick else FULL, args)
     result = run_benchmark(cfg, Path(args.out), plots=not args.no_plots, log=stderr_log)
     print(format_tables(result))
-    print(f"\nwrote {Path(args.out) / 'bench_grad.json'} in {result['total_wall_s']:.0f} s (load average "
-          f"{result['machine']['loadavg_start'][0]:.1f} at start, {result['machine']['loadavg_end'][0]:.1f} at end)")
+    print("\n" + run_summary(f"{Path(args.out) / 'bench_grad.json'}", result))
     return 0
 
 

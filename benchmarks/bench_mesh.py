@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from .common import REPO, command, interleave, load, out_dir, print_table, time_calls, write_json
+from .common import REPO, Stopwatch, command, interleave, load, out_dir, print_table, time_calls, write_json
 
 sys.path.insert(0, str(REPO / "data_synthetic"))
 
@@ -77,9 +77,8 @@ def rays_per_second(counts, n_rays, repeats, seed=0) -> list[dict]:
     for count in counts:
         v, f = torus_mesh(*_grid(count))
         o, d, lim = _rays(v, n_rays, rng)
-        t0 = time.perf_counter()
-        mesh = jf.Mesh.from_arrays(v, f, jf.Diffuse(0.5))
-        build = time.perf_counter() - t0
+        with Stopwatch() as build:
+            mesh = jf.Mesh.from_arrays(v, f, jf.Diffuse(0.5))
         nbytes = sum(x.nbytes for x in jax.tree.leaves(mesh) if hasattr(x, "nbytes"))
         nearest = jax.jit(jax.vmap(lambda a, b: mesh_nearest(mesh, a, b)))
         shadow = jax.jit(jax.vmap(lambda a, b, c: mesh_occluded(mesh, a, b, c)))
@@ -94,7 +93,7 @@ def rays_per_second(counts, n_rays, repeats, seed=0) -> list[dict]:
         assert np.array_equal(np.asarray(tb), np.asarray(tp)) and np.array_equal(np.asarray(sb), np.asarray(sp))
         row = {"triangles": int(len(f)), "rays": n_rays, "bvh_rays_per_s": n_rays / times["nearest"][0],
                "shadow_rays_per_s": n_rays / times["shadow"][0], "plain_vmap_rays_per_s": n_rays / times["plain"][0],
-               "build_s": build, "mesh_bytes": int(nbytes), "stack_size": mesh.stack_size,
+               "build_s": build.s, "mesh_bytes": int(nbytes), "stack_size": mesh.stack_size,
                "rows": int(mesh.rows.shape[0]), "leaves": mesh.n_leaves,
                "hit_fraction": float(np.isfinite(np.asarray(tb)).mean()),
                "shadow_blocked_fraction": float(np.asarray(shadow(o, d, lim)).mean())}

@@ -72,6 +72,32 @@ def _rng_fn(scene, spp):
     return f
 
 
+def table_rows(rows: list, times: dict, spp: int, n_pix: int) -> list[dict]:
+    """Per configuration of `rows` and for the random numbers alone, from `interleave`'s `times` of `spp` spp: ms/spp
+    (median and every repetition), paths/s, the ratio to the "default" row, the first call and the compile time it
+    suggests (the first call less a timed one)."""
+    ms = {k: [x / spp * 1e3 for x in t["wall_s"]] for k, t in times.items()}
+    ref = statistics.median(ms["default"])
+    out_rows = []
+    for r in rows:
+        med = statistics.median(ms[r["name"]])
+        first = times[r["name"]]["first_call_s"]
+        out_rows.append({
+            "group": r["group"], "name": r["name"], "overrides": r["overrides"], "kwargs": r["kwargs"],
+            "layers_per_call": tools.layers_per_batch(
+                r["scene"], spp, r["kwargs"].get("batch_paths", tools.DEFAULT_BATCH_PATHS)),
+            "ms_per_spp_median": med, "ms_per_spp": ms[r["name"]], "paths_per_s": n_pix / (med / 1e3),
+            "ratio_to_default": med / ref, "first_call_s": first,
+            "compile_s_estimate": max(0.0, first - med * spp / 1e3),
+        })
+    rng_med = statistics.median(ms["random numbers only"])
+    out_rows.append({"group": "component", "name": "random numbers only", "overrides": [], "kwargs": {},
+                     "layers_per_call": spp, "ms_per_spp_median": rng_med, "ms_per_spp": ms["random numbers only"],
+                     "paths_per_s": n_pix / (rng_med / 1e3), "ratio_to_default": rng_med / ref,
+                     "first_call_s": None, "compile_s_estimate": None})
+    return out_rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="few configurations, 4 spp, 2 repetitions (a smoke test)")
@@ -98,26 +124,7 @@ def main(argv=None) -> int:
     fns = {r["name"]: (lambda _, r=r: jf.render(r["scene"], key, spp, **r["kwargs"]).block_until_ready()) for r in rows}
     rng = _rng_fn(rows[0]["scene"], spp)
     fns["random numbers only"] = lambda _: rng(key).block_until_ready()
-    times = interleave(fns, reps, log=print)
-    ms = {k: [x / spp * 1e3 for x in t["wall_s"]] for k, t in times.items()}
-    ref = statistics.median(ms["default"])
-    out_rows = []
-    for r in rows:
-        med = statistics.median(ms[r["name"]])
-        first = times[r["name"]]["first_call_s"]
-        out_rows.append({
-            "group": r["group"], "name": r["name"], "overrides": r["overrides"], "kwargs": r["kwargs"],
-            "layers_per_call": tools.layers_per_batch(
-                r["scene"], spp, r["kwargs"].get("batch_paths", tools.DEFAULT_BATCH_PATHS)),
-            "ms_per_spp_median": med, "ms_per_spp": ms[r["name"]], "paths_per_s": n_pix / (med / 1e3),
-            "ratio_to_default": med / ref, "first_call_s": first,
-            "compile_s_estimate": max(0.0, first - med * spp / 1e3),
-        })
-    rng_med = statistics.median(ms["random numbers only"])
-    out_rows.append({"group": "component", "name": "random numbers only", "overrides": [], "kwargs": {},
-                     "layers_per_call": spp, "ms_per_spp_median": rng_med, "ms_per_spp": ms["random numbers only"],
-                     "paths_per_s": n_pix / (rng_med / 1e3), "ratio_to_default": rng_med / ref,
-                     "first_call_s": None, "compile_s_estimate": None})
+    out_rows = table_rows(rows, interleave(fns, reps, log=print), spp, n_pix)
 
     print(f"\n{args.scene}: {cam.width}x{cam.height}, {spp} spp per timing, {reps} interleaved repetitions (medians)")
     print_table(out_rows, [("group", "group"), ("configuration", "name"), ("layers/call", "layers_per_call"),

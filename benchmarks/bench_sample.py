@@ -34,13 +34,13 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import statistics
 import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import compile_timed, interleave, out_dir, print_table, scene_path, time_calls, write_json
+from benchmarks.common import compile_timed, interleave, out_dir, print_json, print_table, scene_path, time_calls
+from benchmarks.common import write_json
 
 OUT = out_dir("sample")
 SCENE = scene_path("spot_fog")
@@ -211,7 +211,7 @@ def main(argv=None) -> int:
         rows = run_here(cases, args.reps)
         if args.json:
             for r in rows:
-                print(json.dumps(r))
+                print_json(r)
             return 0
         print(f"medians of {args.reps} calls")
         print_table(rows, [("case", "case"), ("paths", "paths"), ("us/path", "median_us_per_path", ".3f"),

@@ -6,6 +6,7 @@ Where things are
 - `subprocess_env()`: the environment of a `python -m benchmarks.X` subprocess.
 
 Timing (wall seconds from `time.perf_counter`, CPU seconds of the whole process from `time.process_time`)
+- `Stopwatch()`: one block's (or a run's) wall and CPU seconds: `with Stopwatch() as sw: ...`, then `sw.s`, `sw.cpu_s`.
 - `time_calls(fn, n, warmup)`: `fn` called `warmup` times untimed (compiles), then `n` times timed; medians.
 - `interleave({label: fn}, rounds)`: the functions in turn, A B A B ... (or A B, B A, ...), so that a change of the
   machine's speed hits every label alike; per-label times and per-round ratios against the first label.
@@ -14,10 +15,14 @@ Timing (wall seconds from `time.perf_counter`, CPU seconds of the whole process 
 Recording
 - `machine_info()`: CPU model and cores, Python, jax and its devices, load average, date, git commit.
 - `write_json(path, payload)`: JSON with the machine record added, written atomically (`jaxfog.tools.atomic_write`);
-  `save_npz(path, **arrays)` likewise for arrays; `command(prog, argv)`: the command line, for the record.
+  `save_npz(path, **arrays)` likewise for arrays; `command(prog, argv)`: the command line, for the record;
+  `read_json(path, missing)`: an earlier run's JSON (to keep the parts not run again); `print_json(obj)`: one JSON
+  line on stdout; `run_summary(what, result)`: the closing "wrote ... in N s (load average ...)" line;
+  `digest(obj)`: a short hash of a JSON-able key (cache file names).
 - `with_args(cfg, args)`: a benchmark's configuration (a dataclass) with the command line's values.
 - `print_table(rows, columns)`, `format_table(rows, columns)`: a plain-text (or Markdown) table, on stdout or as
-  text; `stderr_log(text)`: a progress line on stderr.
+  text; `stderr_log(text)`: a progress line on stderr; `pyplot()`: matplotlib's pyplot without a display,
+  `save_figure(fig, path)`: a figure to a file.
 
 Statistics: `mean_and_se(values)`, `block_means(image, n)`; XLA memory: `memory_dict(memory_analysis)` (MiB).
 """
@@ -25,6 +30,7 @@ Statistics: `mean_and_se(values)`, `block_means(image, n)`; XLA memory: `memory_
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -82,6 +88,47 @@ def subprocess_env(env: dict | None = None) -> dict:
 
 
 # ================================================================================================== timing
+class Stopwatch:
+    """Wall seconds (`time.perf_counter`, or `clock`) and CPU seconds of the whole process (`time.process_time`)
+    since it was made (or `restart`ed): `s` and `cpu_s` read the time so far; `stop()` (or the end of a `with`
+    block) keeps them at that moment.
+
+        with Stopwatch() as sw:
+            work()
+        print(sw.s, sw.cpu_s)
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.perf_counter):
+        self.clock = clock
+        self.restart()
+
+    def restart(self) -> "Stopwatch":
+        self._end = None
+        self._t0, self._c0 = self.clock(), time.process_time()
+        return self
+
+    def stop(self) -> float:
+        """Keeps the times at this moment; returns the wall seconds."""
+        self._end = (self.clock(), time.process_time())
+        return self.s
+
+    def __enter__(self) -> "Stopwatch":
+        return self.restart()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def s(self) -> float:
+        """Wall seconds (of the clock)."""
+        return (self.clock() if self._end is None else self._end[0]) - self._t0
+
+    @property
+    def cpu_s(self) -> float:
+        """CPU seconds of the process, all threads."""
+        return (time.process_time() if self._end is None else self._end[1]) - self._c0
+
+
 def _summary(wall: list, cpu: list) -> dict:
     med = lambda x: statistics.median(x) if x else float("nan")  # noqa: E731
     return {"wall_s": wall, "cpu_s": cpu, "median_s": med(wall), "median_cpu_s": med(cpu),
@@ -94,19 +141,18 @@ def _warm(fn: Callable, warmup: int) -> dict:
     if warmup < 1:
         return {"first_call_s": None, "compile_s": None}
     with CompileTimer() as ct:
-        t0 = time.perf_counter()
-        fn(0)
-        first = time.perf_counter() - t0
+        with Stopwatch() as first:
+            fn(0)
         for _ in range(warmup - 1):
             fn(0)
-    return {"first_call_s": first, "compile_s": ct.seconds}
+    return {"first_call_s": first.s, "compile_s": ct.seconds}
 
 
 def _call(fn: Callable, i: int, rec: dict, keep: bool) -> None:
-    c0, t0 = time.process_time(), time.perf_counter()
-    value = fn(i)
-    rec["wall_s"].append(time.perf_counter() - t0)
-    rec["cpu_s"].append(time.process_time() - c0)
+    with Stopwatch() as sw:
+        value = fn(i)
+    rec["wall_s"].append(sw.s)
+    rec["cpu_s"].append(sw.cpu_s)
     if keep:
         rec["values"].append(value)
 
@@ -135,12 +181,12 @@ def interleave(fns: dict, rounds: int, warmup: int = 1, alternate: bool = False,
     inside one round are the numbers to trust on a shared machine. `log(text)` is told each round's end."""
     labels = list(fns)
     recs = {k: {"wall_s": [], "cpu_s": [], "values": [], **_warm(fns[k], warmup)} for k in labels}
-    t_start = time.perf_counter()
+    sw = Stopwatch()
     for r in range(rounds):
         for k in (labels[::-1] if alternate and r % 2 else labels):
             _call(fns[k], r, recs[k], keep)
         if log is not None:
-            log(f"  round {r + 1}/{rounds} ({time.perf_counter() - t_start:.0f} s)")
+            log(f"  round {r + 1}/{rounds} ({sw.s:.0f} s)")
     base = recs[labels[0]]
     out = {}
     for k, rec in recs.items():
@@ -157,9 +203,9 @@ def interleave(fns: dict, rounds: int, warmup: int = 1, alternate: bool = False,
 def compile_timed(jitted, *args, **compiler_options):
     """`(compiled, seconds)`: `jitted.lower(*args).compile()` (with XLA `compiler_options` where given) and its wall
     time, trace and lowering included."""
-    t0 = time.perf_counter()
-    compiled = jitted.lower(*args).compile(**({"compiler_options": compiler_options} if compiler_options else {}))
-    return compiled, time.perf_counter() - t0
+    with Stopwatch() as sw:
+        compiled = jitted.lower(*args).compile(**({"compiler_options": compiler_options} if compiler_options else {}))
+    return compiled, sw.s
 
 
 def with_args(cfg, args):
@@ -232,6 +278,37 @@ def write_json(path, payload: dict) -> None:
     atomic_write(path, write)
 
 
+_MISSING = object()
+
+
+def read_json(path, missing=_MISSING):
+    """The JSON file `path` (an earlier run's record); `missing` where there is no such file (without `missing`, a
+    missing file raises `FileNotFoundError`)."""
+    if missing is not _MISSING and not os.path.exists(path):
+        return missing
+    with open(path) as f:
+        return json.load(f)
+
+
+def print_json(obj, label: str = "") -> None:
+    """`obj` as one JSON line on stdout (numpy values converted), after `label` where given, at once."""
+    print(*([label] if label else []), json.dumps(obj, default=json_default), flush=True)
+
+
+def digest(obj, n: int = 12) -> str:
+    """The first `n` hex digits of the SHA-256 of `obj` as JSON with sorted keys: a cache file's name part, changing
+    whenever anything in `obj` does."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:n]
+
+
+def run_summary(what: str, result: dict) -> str:
+    """The closing line of a run: `wrote WHAT in N s (load average A at start, B at end)`, from `result`'s
+    `total_wall_s` and `machine` (as `write_json` completed it)."""
+    m = result["machine"]
+    return (f"wrote {what} in {result['total_wall_s']:.0f} s (load average {m['loadavg_start'][0]:.1f} at start, "
+            f"{m['loadavg_end'][0]:.1f} at end)")
+
+
 def save_npz(path, compressed: bool = False, **arrays) -> None:
     """`np.savez` (or `np.savez_compressed`) of `arrays` to `path` (ending in `.npz`), written atomically (its folder
     created if missing)."""
@@ -285,6 +362,23 @@ def print_table(rows: list, columns: list, markdown: bool = False) -> str:
 def stderr_log(text: str) -> None:
     """A benchmark's progress line: on stderr (stdout holds the tables), at once."""
     print(text, file=sys.stderr, flush=True)
+
+
+def pyplot():
+    """`matplotlib.pyplot` on the Agg backend (files only, no display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path, dpi: int = 80) -> None:
+    """A figure of `pyplot()`, laid out tight, saved to `path` and closed."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
 
 
 # ============================================================================================== statistics

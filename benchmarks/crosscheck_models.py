@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import sys
 
@@ -129,8 +128,49 @@ def stats(imgs: np.ndarray, exclude: int = 0, rings: bool = False) -> dict:
     return out
 
 
+def run_case(name: str, case: dict, args, cmd: str) -> dict:
+    """One case of `CASES` (with the command line's replacements): `n` images a side, each timed (the first jaxfog
+    image compiles), compared by image and block means per channel; its record for the JSON."""
+    from benchmarks.common import time_calls
+
+    path, over, what = case["path"], case["over"], case["what"]
+    n = args.images or case["images"]
+    spp, spp_m = args.spp or case["spp"], args.spp_mitsuba or case["spp_mitsuba"]
+    exclude, rings = case.get("exclude", 0), case.get("rings", False)
+    scene = jaxfog.load_scene(path, over).scene
+    integrator = "volpathmis" if name.startswith("chromatic") else "volpath"
+    ours = time_calls(lambda k: np.asarray(jaxfog.render(scene, jax.random.key(20_000 + args.seed + k), spp),
+                                           np.float64), n, warmup=0, keep=True)
+    theirs = time_calls(lambda k: render_mitsuba(path, spp_m, args.seed + k, over, integrator), n, warmup=0,
+                        keep=True)
+    j, m = stats(np.stack(ours["values"]), exclude, rings), stats(np.stack(theirs["values"]), exclude, rings)
+    z = (j["mean"] - m["mean"]) / np.sqrt(j["se"] ** 2 + m["se"] ** 2)
+    se_b = np.sqrt(j["block_se"] ** 2 + m["block_se"] ** 2)
+    lit = se_b > 0  # blocks that are black in both renderers (no fog seen) have no z
+    z_full = np.where(lit, (j["block_mean"] - m["block_mean"]) / np.where(lit, se_b, 1.0), np.nan)  # (16, 3)
+    zb = z_full[lit]
+    side = lambda s: {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in s.items()  # noqa: E731
+                      if k not in ("block_mean", "block_se")}
+    res = {"scene": path, "overrides": over, "what": what, "mitsuba_integrator": integrator,
+           "images": n, "spp": spp, "spp_mitsuba": spp_m, "seed": args.seed, "excluded_centre_px": exclude,
+           "date": datetime.date.today().isoformat(), "command": cmd,
+           "jaxfog": side(j), "mitsuba": side(m),
+           "rel_diff": ((j["mean"] - m["mean"]) / m["mean"]).tolist(), "z": z.tolist(),
+           "blocks_max_abs_z": float(np.abs(zb).max()), "blocks_mean_z2": float((zb ** 2).mean()),
+           "blocks_n": int(zb.size),
+           "blocks_z_first_channel": [round(float(v), 2) if np.isfinite(v) else None for v in z_full[:, 0]],
+           "jaxfog_s": round(sum(ours["wall_s"]), 1), "mitsuba_s": round(sum(theirs["wall_s"]), 1),
+           "jaxfog_cpu_s": round(sum(ours["cpu_s"]), 1), "mitsuba_cpu_s": round(sum(theirs["cpu_s"]), 1)}
+    if rings:
+        res["rings_z"] = [(a["mean"] - b["mean"]) / np.hypot(a["se"], b["se"]) for a, b in zip(j["rings"], m["rings"])]
+    if exclude:
+        a, b = j["centre"], m["centre"]
+        res["centre_z"] = (a["mean"] - b["mean"]) / np.hypot(a["se"], b["se"])
+    return res
+
+
 def main(argv=None) -> int:
-    from benchmarks.common import command, machine_info, out_dir, time_calls, write_json
+    from benchmarks.common import command, machine_info, out_dir, print_json, read_json, write_json
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--images", type=int, help="images per side (default: the case's)")
@@ -142,7 +182,7 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="*")
     ap.add_argument("--out", default=str(out_dir("crosscheck_models") / "crosscheck_models.json"))
     args = ap.parse_args(argv)
-    out = json.load(open(args.out)) if os.path.exists(args.out) else {}
+    out = read_json(args.out, {})
     out.update({"machine": machine_info(), "tabphase_size": TABPHASE_SIZE})
     for k in ("date", "images", "spp", "spp_mitsuba", "command"):
         out.pop(k, None)  # per case now
@@ -154,44 +194,9 @@ def main(argv=None) -> int:
     for name, case in CASES.items():
         if args.only and name not in args.only:
             continue
-        path, over, what = case["path"], case["over"], case["what"]
-        n = args.images or case["images"]
-        spp, spp_m = args.spp or case["spp"], args.spp_mitsuba or case["spp_mitsuba"]
-        exclude, rings = case.get("exclude", 0), case.get("rings", False)
-        scene = jaxfog.load_scene(path, over).scene
-        integrator = "volpathmis" if name.startswith("chromatic") else "volpath"
-        # n images a side, each timed (the first jaxfog image compiles)
-        ours = time_calls(lambda k: np.asarray(jaxfog.render(scene, jax.random.key(20_000 + args.seed + k), spp),
-                                               np.float64), n, warmup=0, keep=True)
-        theirs = time_calls(lambda k: render_mitsuba(path, spp_m, args.seed + k, over, integrator), n, warmup=0,
-                            keep=True)
-        j, m = stats(np.stack(ours["values"]), exclude, rings), stats(np.stack(theirs["values"]), exclude, rings)
-        z = (j["mean"] - m["mean"]) / np.sqrt(j["se"] ** 2 + m["se"] ** 2)
-        se_b = np.sqrt(j["block_se"] ** 2 + m["block_se"] ** 2)
-        lit = se_b > 0  # blocks that are black in both renderers (no fog seen) have no z
-        z_full = np.where(lit, (j["block_mean"] - m["block_mean"]) / np.where(lit, se_b, 1.0), np.nan)  # (16, 3)
-        zb = z_full[lit]
-        side = lambda s: {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in s.items()  # noqa: E731
-                          if k not in ("block_mean", "block_se")}
-        res = {"scene": path, "overrides": over, "what": what, "mitsuba_integrator": integrator,
-               "images": n, "spp": spp, "spp_mitsuba": spp_m, "seed": args.seed, "excluded_centre_px": exclude,
-               "date": datetime.date.today().isoformat(), "command": cmd,
-               "jaxfog": side(j), "mitsuba": side(m),
-               "rel_diff": ((j["mean"] - m["mean"]) / m["mean"]).tolist(), "z": z.tolist(),
-               "blocks_max_abs_z": float(np.abs(zb).max()), "blocks_mean_z2": float((zb ** 2).mean()),
-               "blocks_n": int(zb.size),
-               "blocks_z_first_channel": [round(float(v), 2) if np.isfinite(v) else None for v in z_full[:, 0]],
-               "jaxfog_s": round(sum(ours["wall_s"]), 1), "mitsuba_s": round(sum(theirs["wall_s"]), 1),
-               "jaxfog_cpu_s": round(sum(ours["cpu_s"]), 1), "mitsuba_cpu_s": round(sum(theirs["cpu_s"]), 1)}
-        if rings:
-            res["rings_z"] = [(a["mean"] - b["mean"]) / np.hypot(a["se"], b["se"])
-                              for a, b in zip(j["rings"], m["rings"])]
-        if exclude:
-            a, b = j["centre"], m["centre"]
-            res["centre_z"] = (a["mean"] - b["mean"]) / np.hypot(a["se"], b["se"])
-        out["cases"][name] = res
+        res = out["cases"][name] = run_case(name, case, args, cmd)
         keys = ("jaxfog", "mitsuba", "z", "blocks_max_abs_z", "blocks_mean_z2", "jaxfog_cpu_s", "mitsuba_cpu_s")
-        print(name, json.dumps({k: res[k] for k in keys + (("rings_z",) if rings else ())}), flush=True)
+        print_json({k: res[k] for k in keys + (("rings_z",) if "rings_z" in res else ())}, name)
         write_json(args.out, out)
     return 0
 

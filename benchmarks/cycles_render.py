@@ -19,6 +19,7 @@ temporary folder and read back with `bpy.data.images.load` (outside the timing).
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
@@ -87,6 +88,16 @@ def build_scene(p: dict) -> None:
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
+    _render_settings(scene, p)
+    _camera(scene, p["camera"])
+    _world(scene, p["volume"])
+    _shapes(p["shapes"])
+    _lights(scene, p["lights"])
+
+
+def _render_settings(scene, p: dict) -> None:
+    """Cycles on the CPU: size, threads, EXR output, box filter, no denoising / adaptive sampling / clamping, the
+    bounce limits of `p`."""
     r, c = scene.render, scene.cycles
     r.engine = "CYCLES"
     c.device = "CPU"
@@ -113,16 +124,25 @@ def build_scene(p: dict) -> None:
     if "volume_biased" in c.bl_rna.properties:
         c.volume_biased = False
 
-    # camera: horizontal field of view
+
+def _camera(scene, p: dict) -> None:
+    """The camera of `p` (`fov_x`: horizontal field of view, `matrix`)."""
+    import bpy
+
     cam = bpy.data.cameras.new("camera")
-    cam.type, cam.sensor_fit, cam.angle = "PERSP", "HORIZONTAL", float(p["camera"]["fov_x"])
+    cam.type, cam.sensor_fit, cam.angle = "PERSP", "HORIZONTAL", float(p["fov_x"])
     cam.clip_start, cam.clip_end = 1e-3, 1e5
     cam_ob = bpy.data.objects.new("camera", cam)
     scene.collection.objects.link(cam_ob)
-    cam_ob.matrix_world = _matrix(p["camera"]["matrix"])
+    cam_ob.matrix_world = _matrix(p["matrix"])
     scene.camera = cam_ob
 
-    # world: black background, the fog as a world volume (fills all space outside the objects)
+
+def _world(scene, v: dict | None) -> None:
+    """The world: black background, the fog `v` (None: none) as a world volume (fills all space outside the
+    objects)."""
+    import bpy
+
     world = bpy.data.worlds.new("world")
     scene.world = world
     world.color = (0.0, 0.0, 0.0)
@@ -135,7 +155,6 @@ def build_scene(p: dict) -> None:
     bg.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
     bg.inputs["Strength"].default_value = 0.0
     _link(nt, bg, "Background", out, "Surface")
-    v = p["volume"]
     if v is not None:
         sc = nt.nodes.new("ShaderNodeVolumeScatter")
         sc.inputs["Color"].default_value = (*v["scatter_color"], 1.0)
@@ -149,7 +168,10 @@ def build_scene(p: dict) -> None:
         nt.links.new(ab.outputs[0], add.inputs[1])
         _link(nt, add, "Shader", out, "Volume")
 
-    for i, s in enumerate(p["shapes"]):
+
+def _shapes(shapes: list) -> None:
+    """Each shape (a quad, or a sphere as an icosphere with smooth normals) with its diffuse material."""
+    for i, s in enumerate(shapes):
         mat = _diffuse_material(f"bsdf{i}", s["reflectance"])
         if s["type"] == "quad":
             _mesh_object(f"shape{i}", s["vertices"], [(0, 1, 2, 3)], mat, smooth=False)
@@ -162,7 +184,12 @@ def build_scene(p: dict) -> None:
         else:
             raise ValueError(f"shape type {s['type']!r}")
 
-    for i, li in enumerate(p["lights"]):
+
+def _lights(scene, lights: list) -> None:
+    """Each light: a point or spot of radius 0 (a delta light), its power, color and matrix."""
+    import bpy
+
+    for i, li in enumerate(lights):
         lt = bpy.data.lights.new(f"light{i}", li["type"])
         lt.energy = float(li["power"])
         lt.color = tuple(li["color"])
@@ -214,10 +241,11 @@ def render_once(spp: int, seed: int, tmpdir: str) -> tuple[np.ndarray, float]:
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 2:
-        print("usage: cycles_render.py JOB.json OUT.npz", file=sys.stderr)
-        return 2
-    with open(argv[0]) as f:
+    ap = argparse.ArgumentParser(prog="cycles_render.py", description=__doc__.split("\n\n")[0])
+    ap.add_argument("job", metavar="JOB.json", help="the scene and the jobs (benchmarks.bench_cycles.run_cycles)")
+    ap.add_argument("out", metavar="OUT.npz", help="where the images and times go")
+    args = ap.parse_args(argv)
+    with open(args.job) as f:
         job = json.load(f)
     import bpy
 
@@ -241,9 +269,9 @@ def main(argv: list[str]) -> int:
             out[f"images_{k}"] = np.stack(images).astype(np.float32)
             out[f"times_{k}"] = np.asarray(times)
             out[f"warmup_{k}"] = warm
-    tmp_out = argv[1] + ".tmp.npz"
+    tmp_out = args.out + ".tmp.npz"
     np.savez(tmp_out, **out)
-    os.replace(tmp_out, argv[1])
+    os.replace(tmp_out, args.out)
     return 0
 
 

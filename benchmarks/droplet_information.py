@@ -23,13 +23,11 @@ jointly with sigma_t, as a fraction of d, the correlation of the two estimates, 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
-import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # as a script: `benchmarks` importable
-from benchmarks.common import command, load, out_dir, print_table, write_json  # noqa: E402
+from benchmarks.common import Stopwatch, command, load, out_dir, print_json, print_table, write_json  # noqa: E402
 
 TRUTH = {"diameter": 8.0, "sigma_t": 0.3, "albedo": 0.9}
 VIEWS = {
@@ -72,8 +70,7 @@ def measure(name, scene_name, overrides, spp, keys, seed0=30_000):
     p0 = jnp.asarray([TRUTH["diameter"], TRUTH["sigma_t"]], jnp.float32)
     jac = jax.jit(jax.jacfwd(f, has_aux=True))
     Js, imgs, vs = [], [], []
-    t0 = time.perf_counter()
-    c0 = time.process_time()
+    sw = Stopwatch()
     for k in range(keys):
         J, (img, var) = jac(p0, jax.random.key(seed0 + k))
         Js.append(np.asarray(J, np.float64))  # (H, W, 2)
@@ -84,7 +81,7 @@ def measure(name, scene_name, overrides, spp, keys, seed0=30_000):
     hi = np.asarray(render(p0.at[0].add(FD_STEP)), np.float64)
     lo = np.asarray(render(p0.at[0].add(-FD_STEP)), np.float64)
     fd = (hi - lo) / (2 * FD_STEP)
-    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    wall, cpu = sw.stop(), sw.cpu_s
     J = np.stack(Js)  # (K, H, W, 2)
     v = np.mean(vs, axis=0)
     img = np.mean(imgs, axis=0)
@@ -97,31 +94,41 @@ def measure(name, scene_name, overrides, spp, keys, seed0=30_000):
            "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "by_resolution": {}}
     H = J.shape[1]
     for fsz in (4, 2, 1):
-        if H // fsz < 8:
-            continue
-        Jp = np.stack([np.stack([pool(J[k, ..., i], fsz) for i in range(2)], -1) for k in range(keys)])
-        # per-sample variance of a fit pixel (a sample uniform over its f x f target pixels): the mean of their
-        # variances plus the spread of their means (total variance), the latter less its estimate's own noise
-        S = spp * keys
-        spread = pool(img * img, fsz) - pool(img, fsz) ** 2 - (1 - 1 / fsz ** 2) * pool(v, fsz) / S
-        vp = pool(v, fsz) + np.maximum(spread, 0.0)
-        jm = Jp.mean(0)
-        res = {}
-        for label, N in (("fit_spp", FIT_SPP), ("target", TARGET_SPP * fsz * fsz)):
-            w = N / np.maximum(vp, 1e-300)
-            F = np.einsum("hwi,hwj,hw->ij", jm, jm, w)
-            dev = Jp - jm
-            Fnoise = np.einsum("khwi,khwj,hw->ij", dev, dev, w) / (keys - 1) / keys
-            Fu = F - Fnoise
-            C = np.linalg.inv(Fu)
-            d, s = TRUTH["diameter"], TRUTH["sigma_t"]
-            res[label] = {"N_per_fit_pixel": N, "F": Fu.tolist(), "F_noise_part": Fnoise.tolist(),
-                          "se_d_alone_rel": float(1 / np.sqrt(Fu[0, 0]) / d),
-                          "se_d_joint_rel": float(np.sqrt(C[0, 0]) / d) if C[0, 0] > 0 else float("inf"),
-                          "se_sigma_joint_rel": float(np.sqrt(C[1, 1]) / s) if C[1, 1] > 0 else float("inf"),
-                          "corr_d_sigma": float(C[0, 1] / np.sqrt(abs(C[0, 0] * C[1, 1])))}
-        out["by_resolution"][f"{H // fsz}x{H // fsz}"] = res
+        if H // fsz >= 8:
+            out["by_resolution"][f"{H // fsz}x{H // fsz}"] = fisher(J, img, v, spp, fsz)
     return out
+
+
+def fisher(J, img, v, spp: int, fsz: int) -> dict:
+    """At the fit resolution of `fsz x fsz` target pixels per fit pixel, from the Jacobians `J` `(keys, H, W, 2)`,
+    the mean image `img` and the per-sample variance `v`: per noise level (`fit_spp`, `target`) the Fisher information
+    with the Jacobian's own noise taken out, the standard errors of d (alone and joint) and of sigma_t, and the
+    correlation (module docstring)."""
+    import numpy as np
+
+    keys = J.shape[0]
+    Jp = np.stack([np.stack([pool(J[k, ..., i], fsz) for i in range(2)], -1) for k in range(keys)])
+    # per-sample variance of a fit pixel (a sample uniform over its f x f target pixels): the mean of their
+    # variances plus the spread of their means (total variance), the latter less its estimate's own noise
+    S = spp * keys
+    spread = pool(img * img, fsz) - pool(img, fsz) ** 2 - (1 - 1 / fsz ** 2) * pool(v, fsz) / S
+    vp = pool(v, fsz) + np.maximum(spread, 0.0)
+    jm = Jp.mean(0)
+    res = {}
+    for label, N in (("fit_spp", FIT_SPP), ("target", TARGET_SPP * fsz * fsz)):
+        w = N / np.maximum(vp, 1e-300)
+        F = np.einsum("hwi,hwj,hw->ij", jm, jm, w)
+        dev = Jp - jm
+        Fnoise = np.einsum("khwi,khwj,hw->ij", dev, dev, w) / (keys - 1) / keys
+        Fu = F - Fnoise
+        C = np.linalg.inv(Fu)
+        d, s = TRUTH["diameter"], TRUTH["sigma_t"]
+        res[label] = {"N_per_fit_pixel": N, "F": Fu.tolist(), "F_noise_part": Fnoise.tolist(),
+                      "se_d_alone_rel": float(1 / np.sqrt(Fu[0, 0]) / d),
+                      "se_d_joint_rel": float(np.sqrt(C[0, 0]) / d) if C[0, 0] > 0 else float("inf"),
+                      "se_sigma_joint_rel": float(np.sqrt(C[1, 1]) / s) if C[1, 1] > 0 else float("inf"),
+                      "corr_d_sigma": float(C[0, 1] / np.sqrt(abs(C[0, 0] * C[1, 1])))}
+    return res
 
 
 def main(argv=None) -> int:
@@ -140,9 +147,8 @@ def main(argv=None) -> int:
         scene, ov = VIEWS[name]
         r = measure(name, scene, ov, args.spp, args.keys)
         rows.append(r)
-        print(json.dumps({k: r[k] for k in ("view", "mean", "dmean_dd", "dmean_dd_se", "dmean_dd_jvp_key0",
-                                             "dmean_dd_fd_key0", "jvp_fd_max_abs_diff_rel", "wall_s", "cpu_s")}),
-              flush=True)
+        print_json({k: r[k] for k in ("view", "mean", "dmean_dd", "dmean_dd_se", "dmean_dd_jvp_key0",
+                                      "dmean_dd_fd_key0", "jvp_fd_max_abs_diff_rel", "wall_s", "cpu_s")})
         write_json(args.out, {"command": command("python benchmarks/droplet_information.py", argv), "truth": TRUTH,
                               "rows": rows})
     print()

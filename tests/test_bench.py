@@ -1,5 +1,6 @@
-"""The benchmark's statistics and plumbing (benchmarks.bench, benchmarks.bench_mitsuba), with a fake renderer and a fake clock:
-no test here times anything real. The end-to-end `--quick` run is marked slow (it compiles several programs)."""
+"""The benchmark's statistics and plumbing (benchmarks.bench, bench_stats, bench_report, bench_mitsuba, common), with a
+fake renderer and a fake clock: no test here times anything real. The end-to-end `--quick` run is marked slow (it
+compiles several programs)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks import bench
+from benchmarks import bench, bench_stats
 from jaxfog._mitsuba import rectangle_matrix
 
 REPO = Path(__file__).resolve().parent.parent
@@ -32,15 +33,15 @@ def test_time_to_rmse_interpolates_and_extrapolates_on_an_inverse_sqrt_curve():
     t = np.array([1.0, 2.0, 4.0, 8.0])
     r = 0.8 / np.sqrt(t)
     for target_t in (1.5, 3.0, 7.0):  # between points: log-log interpolation is exact on a power law
-        got, how = bench.time_to_rmse(t, r, 0.8 / math.sqrt(target_t))
+        got, how = bench_stats.time_to_rmse(t, r, 0.8 / math.sqrt(target_t))
         assert how == "interpolated" and got == pytest.approx(target_t, rel=1e-9)
     for target_t in (0.25, 32.0):  # outside: extrapolated with slope -1/2, also exact here
-        got, how = bench.time_to_rmse(t, r, 0.8 / math.sqrt(target_t))
+        got, how = bench_stats.time_to_rmse(t, r, 0.8 / math.sqrt(target_t))
         assert how == "extrapolated" and got == pytest.approx(target_t, rel=1e-9)
 
 
 def test_time_to_rmse_takes_the_first_crossing_of_a_noisy_curve():
-    got, how = bench.time_to_rmse([1, 2, 4, 8], [1.0, 0.4, 0.6, 0.3], 0.5)
+    got, how = bench_stats.time_to_rmse([1, 2, 4, 8], [1.0, 0.4, 0.6, 0.3], 0.5)
     assert how == "interpolated" and 1 < got < 2
 
 
@@ -51,13 +52,13 @@ def test_reference_rmse_from_halves_and_the_correction():
     a = truth + sigma * rng.standard_normal(truth.shape)
     b = truth + sigma * rng.standard_normal(truth.shape)
     ref = (a + b) / 2
-    r_ref = bench.reference_rmse(a, b)
+    r_ref = bench_stats.reference_rmse(a, b)
     assert r_ref == pytest.approx(sigma / math.sqrt(2), rel=0.03)  # the average of the halves
-    assert bench.rmse(ref, truth) == pytest.approx(r_ref, rel=0.03)
+    assert bench_stats.rmse(ref, truth) == pytest.approx(r_ref, rel=0.03)
     x = truth + 0.5 * rng.standard_normal(truth.shape)  # an independent image with RMSE 0.5 against the truth
-    raw = bench.rmse(x, ref)
+    raw = bench_stats.rmse(x, ref)
     assert raw > 0.52  # against the noisy reference it looks worse ...
-    assert bench.corrected_rmse(raw, r_ref) == pytest.approx(0.5, rel=0.03)  # ... the correction removes that
+    assert bench_stats.corrected_rmse(raw, r_ref) == pytest.approx(0.5, rel=0.03)  # ... the correction removes that
 
 
 def test_block_means_orientation():
@@ -128,14 +129,14 @@ def test_variance_per_spp_and_expected_rmse():
     sigma = 0.8  # per-sample standard deviation of every pixel
     chunks = [truth + sigma / math.sqrt(4) * rng.standard_normal(truth.shape) for _ in range(8)]  # 4 spp each
     # sample variance over 8 images of 12288 pixel-channels: relative sd sqrt(2/7)/sqrt(12288) ~ 0.5%
-    assert bench.variance_per_spp(chunks, 4) == pytest.approx(sigma**2, rel=0.03)
+    assert bench_stats.variance_per_spp(chunks, 4) == pytest.approx(sigma**2, rel=0.03)
     ref_sigma = 0.05
     ref = truth + ref_sigma * rng.standard_normal(truth.shape)
     imgs = [truth + 0.3 * rng.standard_normal(truth.shape) for _ in range(10)]
-    e, se, per = bench.expected_rmse(imgs, ref, ref_sigma)
+    e, se, per = bench_stats.expected_rmse(imgs, ref, ref_sigma)
     assert e == pytest.approx(0.3, rel=0.01) and 0 < se < 0.01 and len(per) == 10
     with pytest.raises(ValueError):
-        bench.variance_per_spp(chunks[:1], 4)
+        bench_stats.variance_per_spp(chunks[:1], 4)
 
 
 def test_mitsuba_compare_measures_jaxfog_at_mitsubas_error(monkeypatch, tmp_path):
@@ -208,15 +209,15 @@ TABLE = {"rows": [_row(2, 0.40, 0.01, 0.45, 1.0), _row(4, 0.05, 0.004, 0.06, 2.0
 
 
 def test_pick_depth_is_the_cheapest_depth_within_the_error():
-    assert bench.pick_depth(TABLE, 0.5) == 2
-    assert bench.pick_depth(TABLE, 0.07) == 4
-    assert bench.pick_depth(TABLE, 0.02) == 8
-    assert bench.pick_depth(TABLE, 0.02, metric="mean") == 8  # 0.004 + 2 * 0.002 <= 0.02
-    assert bench.pick_depth(TABLE, 0.009, metric="mean") == 8
-    assert bench.pick_depth(TABLE, 0.009) == 16  # the per-pixel bias of depth 8 (1.2%) is too large
-    assert bench.pick_depth(TABLE, 0.001) is None  # never the reference itself
+    assert bench_stats.pick_depth(TABLE, 0.5) == 2
+    assert bench_stats.pick_depth(TABLE, 0.07) == 4
+    assert bench_stats.pick_depth(TABLE, 0.02) == 8
+    assert bench_stats.pick_depth(TABLE, 0.02, metric="mean") == 8  # 0.004 + 2 * 0.002 <= 0.02
+    assert bench_stats.pick_depth(TABLE, 0.009, metric="mean") == 8
+    assert bench_stats.pick_depth(TABLE, 0.009) == 16  # the per-pixel bias of depth 8 (1.2%) is too large
+    assert bench_stats.pick_depth(TABLE, 0.001) is None  # never the reference itself
     with pytest.raises(ValueError):
-        bench.pick_depth(TABLE, 0.0)
+        bench_stats.pick_depth(TABLE, 0.0)
 
 
 # ------------------------------------------------------------------------------------------------------- Mitsuba
@@ -239,6 +240,28 @@ def test_missing_mitsuba_is_reported_as_skipped(tmp_path):
     assert "skipped" in res and "no mitsuba here" in res["skipped"]
     text = bench.format_tables({"mitsuba": {"scene": "spot_fog", "skipped": res["skipped"]}})
     assert "Mitsuba 3: skipped" in text
+
+
+def test_report_of_the_depth_study_variance_reduction_and_memory():
+    """`format_tables` (benchmarks.bench_report) of the parts the other tests leave out: the depth table with its
+    picks and the unresolved-path warning, the variance reduction and the peak memory."""
+    rows = [{**r, "mean": 0.5, "rel_pixel_noise": 0.001} for r in TABLE["rows"]]
+    vr = {"base": "free_flight", "better": "equiangular", "geomean_equal_spp": 3.5, "geomean_equal_time": 1.75,
+          "at_max_spp": {"spp": 32, "mse_ratio_equal_spp": 4.0, "mse_ratio_equal_time": 2.0}}
+    text = bench.format_tables({
+        "variance_reduction": {"fake": {"equiangular": vr, "all": None}},
+        "depth": {"width": 16, "height": 16, "spp": 8, "scenes": {"fake": {"rows": rows, "largest_path_share": 0.2}},
+                  "picks": {"0.01": {"fake": None}, "0.5": {"fake": 2}}},
+        "memory": {"jaxfog process max_rss": 1234.4, "note": "not a number"}})
+    lines = text.splitlines()
+    assert f"  {'fake':14s} free_flight / equiangular: at 32 spp 4.00 (equal spp), 2.00 (equal time); geometric " \
+           "mean over spp levels 3.50 / 1.75" in lines
+    assert any(x.startswith("== depth against bias (16x16, 8 spp") for x in lines)
+    assert "fake: one path of the 8 x 16x16 carries 20% of the reference's mean: its rows are not resolved" in lines
+    assert "    1.0%: fake -> none measured (deeper than 16)" in lines and "   50.0%: fake -> 2" in lines
+    table = [x for x in lines if x.startswith("fake ")]
+    assert len(table) == 5 and table[-1].endswith("(reference)") and table[2].endswith(" 1.00")  # depth 8: x 1
+    assert lines[-1] == "peak memory: jaxfog process max_rss 1234 MiB"
 
 
 # ---------------------------------------------------------------------------------------------------------- CLI
@@ -417,6 +440,35 @@ def test_write_json_adds_the_machine_and_replaces_the_file_whole(tmp_path):
     write_json(path, {"machine": "kept", "y": 1})
     assert json.loads(path.read_text()) == {"machine": "kept", "y": 1}
     assert [p.name for p in path.parent.iterdir()] == ["r.json"]  # no temporary file left
+
+
+def test_stopwatch_and_the_json_helpers(tmp_path, capsys):
+    """`Stopwatch` reads its clock while it runs and keeps the time at `stop()` or a `with` block's end; `read_json`,
+    `print_json`, `run_summary` and `digest` (the cache files' key)."""
+    from benchmarks.common import Stopwatch, digest, print_json, read_json, run_summary, write_json
+
+    clock = FakeClock()
+    with Stopwatch(clock) as sw:
+        clock.now += 2.5
+    clock.now += 10.0
+    assert sw.s == 2.5 and sw.cpu_s >= 0
+    running = Stopwatch(clock)
+    clock.now += 1.0
+    assert running.s == 1.0
+    clock.now += 1.0
+    assert running.stop() == 2.0
+    clock.now += 5.0
+    assert running.s == 2.0
+    assert read_json(tmp_path / "none.json", {}) == {}
+    with pytest.raises(FileNotFoundError):
+        read_json(tmp_path / "none.json")
+    write_json(tmp_path / "r.json", {"total_wall_s": 61.6, "v": np.float64(0.5)})
+    r = read_json(tmp_path / "r.json")
+    assert r["v"] == 0.5 and run_summary("X", r).startswith("wrote X in 62 s (load average ")
+    print_json({"a": np.arange(2)}, "case")
+    assert capsys.readouterr().out == 'case {"a": [0, 1]}\n'
+    assert digest({"b": 1, "a": [2]}) == digest({"a": [2], "b": 1}) != digest({"a": [3], "b": 1})
+    assert len(digest({})) == 12
 
 
 def test_format_table_aligns_numbers_and_marks_missing_values():
