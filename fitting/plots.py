@@ -3,8 +3,32 @@
 from __future__ import annotations
 
 import os
+import threading
 
 import numpy as np
+
+
+def _import_pyplot() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot  # noqa: F401
+
+
+def preload() -> threading.Thread:
+    """Import matplotlib (Agg) on a background thread: the fit's renders release the interpreter while XLA runs, so
+    the import (~1 s on a 2-core CPU) overlaps them instead of delaying the figures. Importing the same module
+    from two threads is safe (Python's per-module import locks); a failed import shows when the figures import it."""
+    t = threading.Thread(target=lambda: _quiet(_import_pyplot), name="preload-matplotlib", daemon=True)
+    t.start()
+    return t
+
+
+def _quiet(fn) -> None:
+    try:
+        fn()
+    except Exception:  # reported where the figures import it
+        pass
 
 
 def _save(fig, path) -> None:

@@ -26,6 +26,8 @@ import numpy as np
 
 import jaxfog
 
+from jaxfog.tools import StoredProgram
+
 from .params import FitError, apply, from_unconstrained, gains, jacobian_to_params, to_unconstrained
 
 
@@ -225,15 +227,84 @@ def _fine_scene(scene: jaxfog.Scene, f: int) -> jaxfog.Scene:
     return eqx.tree_at(lambda s: s.camera, scene, cam)
 
 
-@eqx.filter_jit
-def _scan_program(scenes, names, Y, key, spp):
-    """Every candidate row of `Y` rendered in every scene (vmapped over the candidates; one compiled program per
-    scene structure, candidate count and spp)."""
+def _scan_fn(scenes, names, Y, key, spp):
+    """Every candidate row of `Y` rendered in every scene (vmapped over the candidates; one program per scene
+    structure, candidate count and spp)."""
     def one(y):
         vals = from_unconstrained(names, y)
         return [_gain(jaxfog.render(apply(s, vals), jax.random.fold_in(key, i), spp), vals, i)
                 for i, s in enumerate(scenes)]
     return jax.vmap(one)(Y)
+
+
+class _ViewData(NamedTuple):
+    """What a pass renders of one view (a pytree: its arrays are the pass program's inputs, `downscale` part of its
+    signature): the scene at the fit resolution and at the target's (`fine`), the target at the fit resolution,
+    `View.fine_weight` and the partly masked pooled pixels (`partial`, bool `(h, w)`, or None)."""
+
+    scene: jaxfog.Scene
+    fine: jaxfog.Scene
+    target: np.ndarray
+    fine_weight: np.ndarray | None
+    partial: np.ndarray | None
+    downscale: int
+
+
+def _render_view(d: _ViewData, i: int, vals: dict, key, spp: int, ref, variance=False):
+    """View i's render at `vals` (times the camera's factor), "proposal" with reference `ref` where given.
+
+    A pooled view (`downscale` f > 1) with at least `STRATA_SPP_MIN` samples per source pixel is rendered at the
+    target's resolution with spp / f^2 samples a pixel and pooled like the target: the same image in
+    expectation, its samples stratified over the f x f source pixels. Its variance is then the target's kind:
+    the mean of the source pixels' own variances, without the spread of radiance across the pooled pixel that
+    f^2 jittered samples of the coarse pixel would add (docs/fitting.md, "The pooled pixel's variance")."""
+    kw = {"estimator": "proposal", "proposal": ref} if ref is not None else {}
+    f = d.downscale
+    coarse = not stratified(spp, f)
+    if not coarse:
+        out = jaxfog.render(apply(d.fine, vals), key, spp // (f * f), variance=variance, **kw)
+        if d.fine_weight is None:
+            out = (pool(out[0], f), pool(out[1], f) / (f * f)) if variance else pool(out, f)
+        else:
+            w = jnp.asarray(d.fine_weight)[:, :, None]
+            out = ((masked_pool(out[0], w, f), masked_pool(out[1], w, f, variance=True)) if variance
+                   else masked_pool(out, w, f))
+    else:
+        out = jaxfog.render(apply(d.scene, vals), key, spp, variance=variance, **kw)
+    out = (_gain(out[0], vals, i), _gain(out[1], vals, i, 2)) if variance else _gain(out, vals, i)
+    return _untouched(d, out, variance) if coarse else out
+
+
+def _untouched(d: _ViewData, out, variance: bool = False):
+    """A render at the fit resolution (camera factor applied) with its partly masked pixels (`View.fine_weight`)
+    replaced by the target's, variance 0: it cannot leave their masked source pixels out, so in a pass too small
+    to render at the target's resolution, and in the search, those pixels carry no residual and no Jacobian."""
+    if d.partial is None:
+        return out
+    xp = np if isinstance(out, np.ndarray) else jnp
+    t = xp.asarray(d.target, out[0].dtype if variance else out.dtype)
+    m = xp.asarray(d.partial)[..., None]
+    if variance:
+        return xp.where(m, t, out[0]), xp.where(m, 0.0, out[1])
+    return xp.where(m, t, out)
+
+
+def _pass_fn(data: tuple, names: tuple, scales, valid, y, key, ref, spp: int):
+    """The pass program: the Jacobian of every view's flattened render (scaled by `scales`, times `valid`) at `y`,
+    with the value and each view's per-pixel variance from the same samples (forward mode, `jax.jacfwd`)."""
+    def f(yy):
+        vals = from_unconstrained(names, yy)
+        outs = [_render_view(d, i, vals, jax.random.fold_in(key, i), spp, ref, variance=True)
+                for i, d in enumerate(data)]
+        flat = jnp.concatenate([(img / scales[i]).ravel() for i, (img, _) in enumerate(outs)])
+        flat = flat * valid.astype(flat.dtype)
+        return flat, (jax.lax.stop_gradient(flat), [jax.lax.stop_gradient(var) for _, var in outs])
+
+    return jax.jacfwd(f, has_aux=True)(y)
+
+
+_PASS = StoredProgram("fit_pass", _pass_fn)
+_SCAN = StoredProgram("fit_scan", _scan_fn)
 
 
 def _gain(img, vals: dict, view: int, power: int = 1):
@@ -275,10 +346,11 @@ class Problem:
         self.t = np.concatenate([(np.asarray(v.target, np.float64) / s).ravel()
                                  for v, s in zip(views, self.scales)]) / math.sqrt(self.n) * self.valid
         self.pixel_of = np.arange(self.n) // 3
-        self.fine = [_fine_scene(v.scene, v.downscale) for v in views]
         self.partial = [None if v.fine_weight is None else
                         (pool(v.fine_weight[:, :, None].astype(np.float64), v.downscale)[:, :, 0] < 1.0)
                         for v in views]
+        self.data = tuple(_ViewData(v.scene, _fine_scene(v.scene, v.downscale), np.asarray(v.target, np.float32),
+                                    v.fine_weight, p, int(v.downscale)) for v, p in zip(views, self.partial))
 
     def reference(self, y) -> jaxfog.AbstractMedium | None:
         """The "proposal" estimator's reference medium: the medium at `y`, constant to differentiation."""
@@ -286,42 +358,8 @@ class Problem:
         return None if med is None else jax.lax.stop_gradient(med)
 
     def _render(self, i: int, vals: dict, key, spp: int, ref, variance=False):
-        """View i's render at `vals` (times the camera's factor), "proposal" with reference `ref` where given.
-
-        A pooled view (`downscale` f > 1) with at least `STRATA_SPP_MIN` samples per source pixel is rendered at the
-        target's resolution with spp / f^2 samples a pixel and pooled like the target: the same image in
-        expectation, its samples stratified over the f x f source pixels. Its variance is then the target's kind:
-        the mean of the source pixels' own variances, without the spread of radiance across the pooled pixel that
-        f^2 jittered samples of the coarse pixel would add (docs/fitting.md, "The pooled pixel's variance")."""
-        kw = {"estimator": "proposal", "proposal": ref} if ref is not None else {}
-        v, f = self.views[i], self.views[i].downscale
-        coarse = not stratified(spp, f)
-        if not coarse:
-            out = jaxfog.render(apply(self.fine[i], vals), key, spp // (f * f), variance=variance, **kw)
-            if v.fine_weight is None:
-                out = (pool(out[0], f), pool(out[1], f) / (f * f)) if variance else pool(out, f)
-            else:
-                w = jnp.asarray(v.fine_weight)[:, :, None]
-                out = ((masked_pool(out[0], w, f), masked_pool(out[1], w, f, variance=True)) if variance
-                       else masked_pool(out, w, f))
-        else:
-            out = jaxfog.render(apply(v.scene, vals), key, spp, variance=variance, **kw)
-        out = (_gain(out[0], vals, i), _gain(out[1], vals, i, 2)) if variance else _gain(out, vals, i)
-        return self._untouched(i, out, variance) if coarse else out
-
-    def _untouched(self, i: int, out, variance: bool = False):
-        """A render at the fit resolution (camera factor applied) with its partly masked pixels (`View.fine_weight`)
-        replaced by the target's, variance 0: it cannot leave their masked source pixels out, so in a pass too small
-        to render at the target's resolution, and in the search, those pixels carry no residual and no Jacobian."""
-        part = self.partial[i]
-        if part is None:
-            return out
-        xp = np if isinstance(out, np.ndarray) else jnp
-        t = xp.asarray(self.views[i].target, out[0].dtype if variance else out.dtype)
-        m = xp.asarray(part)[..., None]
-        if variance:
-            return xp.where(m, t, out[0]), xp.where(m, 0.0, out[1])
-        return xp.where(m, t, out)
+        """View i's render at `vals` (`_render_view`)."""
+        return _render_view(self.data[i], i, vals, key, spp, ref, variance)
 
     def images(self, y, key, spp: int) -> list[np.ndarray]:
         """One render per view at `y` (linear radiance, `(h, w, 3)` each), "proposal" with reference at `y`."""
@@ -337,24 +375,15 @@ class Problem:
     def scan(self, Y: np.ndarray, key, spp: int) -> np.ndarray:
         """Renders of every row of `Y` (`(N, k)` unconstrained parameter vectors) with the same key (common random
         numbers: the differences between candidates are smooth), as `(N, n)` in scaled units."""
-        out = _scan_program(tuple(v.scene for v in self.views), tuple(self.names), jnp.asarray(Y, jnp.float32), key,
-                            int(spp))
-        out = [self._untouched(i, np.asarray(o, np.float64)) for i, o in enumerate(out)]
+        out = _SCAN(tuple(v.scene for v in self.views), tuple(self.names), jnp.asarray(Y, jnp.float32), key, int(spp))
+        out = [_untouched(d, np.asarray(o, np.float64)) for d, o in zip(self.data, out)]
         return np.stack([self.flat([o[c] for o in out]) for c in range(len(Y))])
 
     def pass_(self, y, key, spp: int) -> Pass:
         """Value, per-sample variance and Jacobian of the residual at `y` from ONE forward-mode pass of `spp`."""
-        ref = self.reference(y)
-
-        def f(yy):
-            vals = from_unconstrained(self.names, yy)
-            outs = [self._render(i, vals, jax.random.fold_in(key, i), spp, ref, variance=True)
-                    for i in range(len(self.views))]
-            flat = jnp.concatenate([(img / s).ravel() for (img, _), s in zip(outs, self.scales)])
-            flat = flat * jnp.asarray(self.valid, flat.dtype)
-            return flat, (jax.lax.stop_gradient(flat), [jax.lax.stop_gradient(var) for _, var in outs])
-
-        J, (img, var) = jax.jacfwd(f, has_aux=True)(jnp.asarray(y, jnp.float32))
+        J, (img, var) = _PASS(self.data, tuple(self.names), np.asarray(self.scales, np.float32),
+                              self.valid.astype(np.float32), jnp.asarray(y, jnp.float32), key, self.reference(y),
+                              int(spp))
         root = math.sqrt(self.n)
         e = np.asarray(img, np.float64) / root - self.t
         u = np.concatenate([(np.asarray(v, np.float64) * spp / (s * s)).ravel()

@@ -4,6 +4,8 @@ library's own entry points use, so that no script reaches into a private module.
 Running
 - `use_cpu_cores()`: every CPU core a JAX device (call before JAX starts).
 - `use_compilation_cache(path=None)`, `cache_dir()`: JAX's persistent compilation cache (`$JAXFOG_CACHE_DIR`).
+- `StoredProgram(name, fn)`, `program_dir()`: `fn` compiled with its traced program kept beside that cache, so that
+  the next process neither traces nor compiles it again.
 - One run on several processes (docs/distributed.md): `add_distributed_arguments(parser)` (`--coordinator`,
   `--num-processes`, `--process-id`), `launch_of(...)` (checked, `LaunchError`), `initialize_distributed(launch)`,
   `process_index()`, `run_process(body, report)` and `report_unexpected(e, prog)` (a failed process ends at once).
@@ -33,6 +35,7 @@ from __future__ import annotations
 
 from ._cache import cache_dir as cache_dir, use_compilation_cache as use_compilation_cache
 from ._devices import use_cpu_cores as use_cpu_cores
+from ._programs import StoredProgram as StoredProgram, program_dir as program_dir
 from ._distributed import (
     LaunchError as LaunchError,
     add_arguments as add_distributed_arguments,
