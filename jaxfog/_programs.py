@@ -35,6 +35,10 @@ import numpy as np
 
 SUFFIX = ".jaxexport"
 
+MAX_FILES = 256
+"""Stored programs kept per folder: writing one more removes the least recently written beyond this (each is
+~0.1 MB; a change of the code or of a scene's structure makes new ones, never reused by the old)."""
+
 _SOURCE_HASHES: dict[str, str] = {}
 
 
@@ -261,3 +265,17 @@ def _write(path: str, blob) -> None:
         _atomic_write(path, lambda tmp: Path(tmp).write_bytes(bytes(blob)))
     except OSError as e:
         warnings.warn(f"stored program not written: {path}: {e.strerror or e}", RuntimeWarning, stacklevel=3)
+        return
+    _prune(os.path.dirname(path))
+
+
+def _prune(folder: str) -> None:
+    """Remove the stored programs of `folder` beyond the `MAX_FILES` most recently written."""
+    keep = MAX_FILES
+    try:
+        files = [e for e in os.scandir(folder) if e.name.endswith(SUFFIX) and e.is_file()]
+        files.sort(key=lambda e: e.stat().st_mtime, reverse=True)
+    except OSError:
+        return
+    for e in files[keep:]:
+        _remove(e.path)

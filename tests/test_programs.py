@@ -122,3 +122,18 @@ def _parts(args):
 
     leaves, impls = _split_keys(leaves)
     return static, treedef, leaves, impls
+
+
+def test_the_folder_keeps_the_most_recently_written_programs(store, monkeypatch):
+    import jaxfog._programs as programs
+
+    monkeypatch.setattr(programs, "MAX_FILES", 2)
+    prog = StoredProgram("t", _fn, str(store))
+    lens, _, key, n = _args()
+    written = []
+    for size in (5, 6, 7):
+        before = set(os.listdir(store)) if store.exists() else set()
+        prog(lens, jnp.linspace(-1, 1, size, dtype=jnp.float32), key, n)
+        written += sorted(set(os.listdir(store)) - before)
+    assert len(written) == 3  # one program per shape
+    assert sorted(os.listdir(store)) == sorted(written[1:])  # the oldest removed
