@@ -109,11 +109,15 @@ def _leaf_text(x) -> str:
 
 
 def _environment() -> str:
-    import jaxlib
+    from importlib.metadata import PackageNotFoundError, version
 
+    try:
+        jaxlib_version = version("jaxlib")
+    except PackageNotFoundError:
+        jaxlib_version = "?"
     devs = jax.devices()
     return "|".join([
-        jax.__version__, getattr(jaxlib, "__version__", "?"), eqx.__version__, sys.version.split()[0],
+        jax.__version__, jaxlib_version, eqx.__version__, sys.version.split()[0],
         jax.default_backend(), str(len(devs)), ",".join(sorted({d.device_kind for d in devs})),
         str(jax.config.jax_enable_x64), os.environ.get("XLA_FLAGS", ""), _package_hash(),
     ])
