@@ -21,6 +21,7 @@ A stored program that cannot be read or called is deleted and traced again.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import inspect
 import os
@@ -77,6 +78,7 @@ def _exact_repr(x) -> str:
     return r
 
 
+@functools.lru_cache(maxsize=None)
 def _type_name(t: type) -> str:
     src = None
     try:
