@@ -30,7 +30,7 @@ import numpy as np
 
 from .information import fisher_report, instead, relative_scales
 from .params import SPECS, FitError, jacobian_to_params, to_unconstrained
-from .problem import LIGHT_MARGIN, Pass, Problem, View
+from .problem import LIGHT_MARGIN, Pass, Problem, View, stratified
 from .rounds import (QUALITY_MIN, Check, Step, chi2_quantile, damped_step, gauss_newton, mahalanobis, model_check,
                      trust_region, two_key_loss, weights)
 from .search import Scan, check_brightness, distinct_starts, global_search
@@ -200,11 +200,28 @@ def _halves(problem: Problem, state: FitState, y, cfg: FitConfig, factor: int) -
     t = time.perf_counter()
     ka, kb = jax.random.split(_key(cfg, state.round))
     half = max(1, factor // 2) * cfg.spp
-    pa, pb = problem.pass_(y, ka, half), problem.pass_(y, kb, half)
+    size = _program_size(problem, half, max(1, cfg.approach_factor // 2) * cfg.spp)
+    pa, pb = _half_pass(problem, y, ka, half, size), _half_pass(problem, y, kb, half, size)
     ok = all(np.all(np.isfinite(x)) for p in (pa, pb) for x in (p.e, p.u, p.J))
-    if half not in state.compiled:
-        state = state.replace(compiled=state.compiled | {half}, t_attempt=state.t_attempt + time.perf_counter() - t)
+    if size not in state.compiled:
+        state = state.replace(compiled=state.compiled | {size}, t_attempt=state.t_attempt + time.perf_counter() - t)
     return ((pa, pb) if ok else None), state
+
+
+def _program_size(problem: Problem, half: int, unit: int) -> int:
+    """The samples of one pass program call for a half of `half` samples: the approach's half `unit` where it divides
+    `half` and pools every view alike (`fitting.problem.stratified`), so one compiled program serves both kinds of round
+    (a cold start compiles one forward-mode program, not two: docs/fitting.md, "Start-up"), else `half`."""
+    alike = all(stratified(unit, v.downscale) == stratified(half, v.downscale) for v in problem.views)
+    return unit if half % unit == 0 and alike else half
+
+
+def _half_pass(problem: Problem, y, key, half: int, size: int) -> Pass:
+    """`half` samples at `y` as `half / size` independent passes of `size` (their spp-weighted mean)."""
+    n = half // size
+    if n == 1:
+        return problem.pass_(y, key, half)
+    return _combine([problem.pass_(y, k, size) for k in jax.random.split(key, n)])
 
 
 def _failed_pass(problem, state: FitState, log) -> FitState:

@@ -51,6 +51,7 @@ from ._medium import (
     check_bounds,
     check_phase_and_extent,
     inside_box,
+    shared,
 )
 from ._phase import AbstractPhaseFunction, HenyeyGreenstein
 from ._validate import NON_NEGATIVE, UNIT, check_range
@@ -216,6 +217,12 @@ def profile(flat, res, lo, hi, o, d) -> Profile:
     return Profile(*jax.lax.optimization_barrier((start, length, coef, jnp.cumsum(depth, axis=0) - depth)))
 
 
+def _grid_profile(density, lo, hi, o, d) -> Profile:
+    """`profile` of a `(nz, ny, nx, C)` density array."""
+    nz, ny, nx, c = density.shape
+    return profile(density.reshape(-1, c), (nx, ny, nz), lo, hi, o, d)
+
+
 def optical_depth(pr: Profile, scale, t) -> Float[Array, " C"]:
     """`tau` over `[0, t]` along the profiled ray (t in [0, inf]), per channel: `scale` times the sum of each
     interval's integral up to `t` (exact)."""
@@ -311,8 +318,9 @@ class GridMedium(AbstractMedium):
         return jnp.maximum(self.scale, SCALE_HAT_MIN)
 
     def profile(self, o, d) -> Profile:
-        """The ray's `Profile` through this grid."""
-        return profile(self._flat(), self.resolution, self.bounds[0], self.bounds[1], o, d)
+        """The ray's `Profile` through this grid, built once per ray where the tracer shares its per-ray values
+        (`_medium.shared_ray_values`; the same grid and ray objects)."""
+        return shared(_grid_profile, self.density, self.bounds[0], self.bounds[1], o, d)
 
     def density_at(self, p) -> Float[Array, " C"]:
         """`D(p)` (unscaled), per channel; 0 outside the box."""

@@ -33,7 +33,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._bsdf import AbstractLobeBSDF
 from ._math import RGB, dot, one_minus_cos_between, safe_div, safe_mul, safe_normalize, where_rgb
-from ._medium import AbstractMedium
+from ._medium import AbstractMedium, shared_ray_values
 from ._sampling import (
     Polar,
     equiangular_pdf,
@@ -700,11 +700,12 @@ def bounce(tr: Tracer, state: PathState, b, U, last=None) -> PathState:
     nee_ok = state.alive if tr.scene.max_depth == -1 else state.alive & (b + 2 <= tr.scene.max_depth)
     state_in, state = state, state._replace(beta=RGB.of(state.beta), L=RGB.of(state.L))  # channels inside a bounce
     hit = intersect(tr.pk, state.o, state.d)
-    seg = computed_once(tr, free_flight(tr, state, hit, U) if tr.medium is not None else no_flight(hit))
-    L = state.L
-    if tr.equiangular:
-        L = L + direct_on_segment(tr, state, seg, nee_ok, U)
-    L = L + emission(tr, state, hit, seg) + direct_at_vertex(tr, state, hit, seg, nee_ok, U)
+    with shared_ray_values():  # a medium's per-ray work on the segment, done once for all of its stages
+        seg = computed_once(tr, free_flight(tr, state, hit, U) if tr.medium is not None else no_flight(hit))
+        L = state.L
+        if tr.equiangular:
+            L = L + direct_on_segment(tr, state, seg, nee_ok, U)
+        L = L + emission(tr, state, hit, seg) + direct_at_vertex(tr, state, hit, seg, nee_ok, U)
 
     def continuation(L):
         dr = computed_once(tr, next_direction(tr, state, hit, seg, U))

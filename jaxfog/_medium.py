@@ -37,7 +37,9 @@ one's rate: for a grey medium the same distances at a third of the pdf's cost, a
 
 
 import abc
-from typing import NamedTuple
+import contextlib
+import contextvars
+from typing import Callable, NamedTuple
 
 import equinox as eqx
 from equinox import AbstractVar
@@ -50,6 +52,43 @@ from ._math import finite_or, one_minus_exp_neg
 from ._phase import AbstractPhaseFunction, HenyeyGreenstein
 from ._sampling import sample_truncated_exponential
 from ._validate import NON_NEGATIVE, UNIT, check_range
+
+# ------------------------------------------------------------------------------------ values shared along a ray
+_SHARED: contextvars.ContextVar[dict | None] = contextvars.ContextVar("jaxfog_shared_ray_values", default=None)
+
+
+@contextlib.contextmanager
+def shared_ray_values():
+    """Within this block, `shared(fn, *args)` computes `fn(*args)` once for the same arguments (a medium's per-ray
+    work that several of its methods need: a density grid's profile, `_grid.GridMedium.profile`), so the tracer's
+    many calls on one segment (free flight, its pdf, the weights, the equiangular transmittance) build it once: XLA
+    does not merge the copies (docs/results/grid.md, "The cost").
+
+    The tracer opens it around the stages of one bounce that read the segment (`_integrator.bounce`), inside one
+    trace: a value cached there is read only in that trace, or captured by a branch or loop traced inside it, which
+    JAX allows. Outside a block nothing is cached. Values are keyed by the arguments' identity (traced arrays have
+    no value to compare), and the block keeps them alive, so an identity is never reused within it."""
+    token = _SHARED.set({})
+    try:
+        yield
+    finally:
+        _SHARED.reset(token)
+
+
+def shared(fn: Callable, *args):
+    """`fn(*args)`, computed once per `shared_ray_values` block for the same `fn` and the same argument objects;
+    outside a block, computed at every call."""
+    cache = _SHARED.get()
+    if cache is None:
+        return fn(*args)
+    key = (fn, *map(id, args))
+    hit = cache.get(key)
+    if hit is not None and all(a is b for a, b in zip(hit[0], args)):
+        return hit[1]
+    out = fn(*args)
+    cache[key] = (args, out)
+    return out
+
 
 Q_MIN = 0.05
 """Smallest probability of choosing the medium branch on a segment (no derivative; a variance/cost trade-off)."""

@@ -399,3 +399,31 @@ def test_best_attempt_never_keeps_a_refused_attempt_over_an_accepted_one():
     assert _best_attempt((accepted, sharper_accepted), 6.0) is sharper_accepted
     assert _best_attempt((accepted, sharper_refused, sharper_accepted), 6.0) is sharper_accepted
     assert _best_attempt(()) is None
+
+
+def test_an_estimate_half_is_rendered_by_the_approachs_program_where_it_divides():
+    """An estimate half (`estimate_factor` / 2 x spp) is rendered as passes of the approach's half size, so a cold
+    start compiles one forward-mode program: the calls use that size only, their keys differ, and the combined pass
+    is their spp-weighted mean with the half's spp. Where the sizes would pool a view differently (too few samples
+    per source pixel to render it at the target's resolution), or do not divide, the half is one call."""
+    import jax
+
+    from fitting.problem import STRATA_SPP_MIN
+    from fitting.solver import _half_pass, _program_size
+
+    calls = []
+
+    class Recorder(_FakeProblem):
+        def pass_(self, y, key, spp):
+            calls.append((spp, tuple(np.asarray(jax.random.key_data(key)).ravel())))
+            v = float(len(calls))
+            return Pass(np.full(N, v), np.full(N, 2 * v), np.full((N, K), 3 * v), spp)
+
+    prob = Recorder()
+    assert _program_size(prob, 2048, 1024) == 1024 and _program_size(prob, 1536, 1024) == 1536
+    p = _half_pass(prob, np.zeros(K), jax.random.key(0), 2048, 1024)
+    assert [c[0] for c in calls] == [1024, 1024] and calls[0][1] != calls[1][1]
+    assert p.spp == 2048 and np.allclose(p.e, 1.5) and np.allclose(p.u, 3.0) and np.allclose(p.J, 4.5)
+    f = 8                                               # a view pooled 8 x 8: 2048 renders fine, 64 would not
+    prob.views[0].downscale = f
+    assert _program_size(prob, STRATA_SPP_MIN * f * f, STRATA_SPP_MIN * f * f // 2) == STRATA_SPP_MIN * f * f

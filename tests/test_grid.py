@@ -485,3 +485,67 @@ def test_dense_voxel_information_matches_the_hutchinson_diagonal():
     assert how == "dense"
     np.testing.assert_allclose(se.ravel(), np.sqrt(np.diag(np.linalg.inv(A))), rtol=1e-6)
     assert np.all(se.ravel() >= (1 - 1e-9) / np.sqrt(np.diag(A)))
+
+
+def test_shared_ray_values_compute_once_per_block_and_key_by_identity():
+    """`_medium.shared` inside a `shared_ray_values` block calls its function once for the same argument objects
+    (and again for equal values in other objects: traced arrays are compared by identity); outside a block, at every
+    call; blocks do not see each other's values."""
+    from jaxfog._medium import shared, shared_ray_values
+
+    calls = []
+
+    def fn(a, b):
+        calls.append((a, b))
+        return a + b
+
+    x, y = np.ones(2), np.zeros(2)
+    shared(fn, x, y)
+    shared(fn, x, y)
+    assert len(calls) == 2
+    with shared_ray_values():
+        r1, r2 = shared(fn, x, y), shared(fn, x, y)
+        assert r1 is r2 and len(calls) == 3
+        shared(fn, x.copy(), y)
+        assert len(calls) == 4
+        with shared_ray_values():
+            shared(fn, x, y)
+            assert len(calls) == 5
+    shared(fn, x, y)
+    assert len(calls) == 6
+
+
+def test_a_render_with_shared_profiles_equals_one_without():
+    """The tracer builds a grid's profile once per segment and medium (`shared_ray_values` in `_integrator.bounce`):
+    the image and its forward-mode derivative along a random direction over the voxels equal those of the same
+    render that builds the profile at every call, with the default ("detached") estimator, whose sampler's profile
+    must carry no derivative (a cache keyed on the ray alone would give it the medium's). Tolerance: float32 rounding
+    of the sums, which the two compiled programs may order differently."""
+    import jaxfog._grid as G
+
+    scene = jf.load_scene(REPO / "data_synthetic" / "scenes" / "spot_fog.json",
+                          ["camera.width=4", "camera.height=4", "integrator.max_depth=2"]).scene
+    box = ((-2.0, -0.5, -2.0), (2.0, 2.5, 1.5))
+    D0 = jnp.asarray(_grid(shape=(2, 3, 2, 1), seed=5, lo=0.2, hi=1.0))
+    dD = jnp.asarray(_grid(shape=(2, 3, 2, 1), seed=6, lo=-1.0, hi=1.0))
+
+    def f(D):
+        med = GridMedium(D, 0.6, 0.9, scene.medium.phase, bounds=box)
+        return jf.render(_with_medium(scene, med), jax.random.key(4), 4)
+
+    def run():  # traced afresh (the renderer keeps its traced programs)
+        jax.clear_caches()
+        return jax.jit(lambda D: jax.jvp(f, (D,), (dD,)))(D0)
+
+    on = run()
+    original = G.shared
+    try:
+        G.shared = lambda fn, *args: fn(*args)
+        off = run()
+    finally:
+        G.shared = original
+        jax.clear_caches()
+    for a, b in zip(on, off):
+        a, b = np.asarray(a), np.asarray(b)
+        assert np.all(np.isfinite(a)) and np.max(np.abs(b)) > 0
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * float(np.max(np.abs(b))))
