@@ -173,19 +173,33 @@ def _cell_cubic(flat, res, g0, gd, start, length) -> Float[Array, "C 4"]:
     return jnp.stack(_lerp_linear(cy[0], cy[1], alpha[2], gd[2]), axis=-1)  # (C, 4)
 
 
+MERGE_SEARCH_MIN = 32
+"""Planes per axis from which `_merge_sorted` counts by binary search (`jnp.searchsorted`, O(n log n)) instead of
+comparing every pair (O(n^2)). Measured (spot_fog geometry, 32 x 32 px, 16 spp, depth 8, 2 cores, one process per
+variant, A B A B): a 64^3 grid renders 0.82x the time with the search, a 16^3 grid 1.3x with it."""
+
+
+def _count_before(y, x, side: str):
+    """For each value of `x`, how many values of the ascending `y` lie before it (`side` "right": `y <= x`, "left":
+    `y < x`); the same counts either way, by whichever method is cheaper for `y`'s length."""
+    if y.shape[0] >= MERGE_SEARCH_MIN:
+        return jnp.searchsorted(y, x, side=side)
+    return jnp.sum(y[None, :] <= x[:, None], axis=1) if side == "right" else jnp.sum(y[None, :] < x[:, None], axis=1)
+
+
 def _merge_sorted(lists) -> Float[Array, " m"]:
     """The values of ascending 1-D arrays in one ascending array, without a sort: each value's position is its index
-    in its own list plus the number of values before it in the others (ties to the earlier list), then one
-    scatter. Loop-free (every ray's breakpoints in a few vectorised comparisons, and XLA may share one profile
-    between the calls that need it)."""
+    in its own list plus the number of values before it in the others (ties to the earlier list; `_count_before`),
+    then one scatter: no sort, and for grids below `MERGE_SEARCH_MIN` planes per axis no loop (a few vectorised
+    comparisons per ray)."""
     ranks = []
     for i, x in enumerate(lists):
         r = jnp.arange(x.shape[0])
         for j, y in enumerate(lists):
             if j < i:
-                r = r + jnp.sum(y[None, :] <= x[:, None], axis=1)
+                r = r + _count_before(y, x, "right")
             elif j > i:
-                r = r + jnp.sum(y[None, :] < x[:, None], axis=1)
+                r = r + _count_before(y, x, "left")
         ranks.append(r)
     values = jnp.concatenate(lists)
     return jnp.zeros_like(values).at[jnp.concatenate(ranks)].set(values, unique_indices=True)

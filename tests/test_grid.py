@@ -223,6 +223,21 @@ def test_values_and_gradients_are_finite_on_hard_cases(grid):
         assert all(np.all(np.isfinite(np.asarray(x))) for x in grads), scale
 
 
+@pytest.mark.parametrize("n", [5, 40])  # below and above MERGE_SEARCH_MIN: pairwise comparisons, binary search
+def test_merge_sorted_equals_numpy_sort_with_ties(n):
+    """`_merge_sorted` of ascending lists (repeated values inside a list and across lists, as clipped plane
+    crossings have) is exactly `np.sort` of their concatenation, by either way of counting."""
+    from jaxfog._grid import MERGE_SEARCH_MIN, _merge_sorted
+
+    rng = np.random.default_rng(n)
+    lists = [np.float32([0.25]), *(np.sort(rng.choice(np.float32([0.25, 0.5, 1.0, 1.5, 2.0, 3.0]), n)
+                                          + np.where(rng.uniform(size=n) < 0.5, 0, rng.uniform(size=n)))
+                                  .astype(np.float32) for _ in range(3)), np.float32([3.0])]
+    assert (n >= MERGE_SEARCH_MIN) == (max(len(x) for x in lists) >= MERGE_SEARCH_MIN)
+    out = np.asarray(jax.jit(_merge_sorted)([jnp.asarray(x) for x in lists]))
+    np.testing.assert_array_equal(out, np.sort(np.concatenate(lists)))
+
+
 def test_profile_of_a_ray_that_misses_the_box_is_empty():
     grid = _grid()
     pr = profile(jnp.asarray(grid).reshape(-1, 1), (6, 5, 4), jnp.array(BOX[0]), jnp.array(BOX[1]),
