@@ -331,17 +331,26 @@ def test_fit_of_a_synthetic_photograph_recovers_the_medium_and_the_exposure(tmp_
     assert res.visibility["mor"] == pytest.approx(K / res.params["sigma_t"])
 
 
-# slow tier: two fits of 10-40 s each (compiling their programs)
+WB = {"exposure[r]": 0.45, "exposure[g]": 0.37, "exposure[b]": 0.30}
+
+
+# slow tier: three fits of 10-40 s each (compiling their programs)
 @pytest.mark.slow
-@pytest.mark.parametrize("names, gains", [
-    (["sigma_t", "g", "exposure:rgb"], {"exposure[r]": 0.45, "exposure[g]": 0.37, "exposure[b]": 0.30}),
-    (["sigma_t", "g", "exposure@1", "exposure@2"], {"exposure@1": 0.37, "exposure@2": 0.74}),
-], ids=["white_balance", "per_image"])
-def test_fit_of_photographs_recovers_white_balance_and_per_image_exposures(tmp_path, names, gains):
+@pytest.mark.parametrize("names, gains, determined", [
+    (["sigma_t", "exposure:rgb"], WB, True),
+    (["sigma_t", "g", "exposure:rgb"], WB, False),
+    (["sigma_t", "g", "exposure@1", "exposure@2"], {"exposure@1": 0.37, "exposure@2": 0.74}, True),
+], ids=["white_balance", "white_balance_and_g", "per_image"])
+def test_fit_of_photographs_recovers_white_balance_and_per_image_exposures(tmp_path, names, gains, determined):
     """The camera's other parameters through the same solver: an unknown white balance (`exposure:rgb`, one factor per
     channel) on one 16-bit photograph, and one exposure per photograph (`exposure@1`, `exposure@2`) on two photographs
     of the same view a stop apart (each rendered with its own key and noise). Every parameter within 3 of its
-    standard errors of the truth."""
+    standard errors of the truth.
+
+    One photograph of this view does not separate g, sigma_t and an unknown white balance: with all three free the
+    fit reads sigma_t 0.61 ± 0.10 and exposure[r] 0.25 ± 0.17 (truths 0.6, 0.45; AMD EPYC, seed 0), with g known
+    0.591 ± 0.015 and 0.438 ± 0.019. So the white balance is fitted with g known, and with g free the fit must say
+    that these parameters are not pinned down (and name the combination the view determines) instead of answering."""
     import jax
 
     import jaxfog
@@ -363,8 +372,14 @@ def test_fit_of_photographs_recovers_white_balance_and_per_image_exposures(tmp_p
         ph = read_photo(path)
         views.append(make_view(_scene(), ph.image, f"photo{i}", 2, None, ph.valid, ph.noise_var, ph.variance))
     init = {"sigma_t": 1.0, "g": 0.0, **{n: 1.0 for n in names if n.startswith("exposure")}}
+    init = {n: v for n, v in init.items() if n in names}
     res = fit_views(views, names, init, FitConfig(spp=32, seed=0), log=lambda *_: None)
+    if not determined:
+        assert not res.success and any("not pinned down" in m and "determine" in m for m in res.messages), res.messages
+        return
     assert res.success, res.messages
     for n, true in {**TRUTH, **gains}.items():
+        if n not in names:
+            continue
         se = res.uncertainty[n]["se"]
         assert abs(res.params[n] - true) <= 3.0 * se, (n, res.params[n], true, se)
