@@ -53,6 +53,11 @@ class View(NamedTuple):
     """Float `(H, W)` at the target's resolution, 0 on those source pixels and 1 elsewhere (None: none): a pooled
     pixel is the mean of its other source pixels, in the target and in every pass rendered at the target's
     resolution (`Problem._render`)."""
+    noise_from_image: bool = False
+    """True where `target_var` is the block estimate of the target alone (no header spp, no camera model): the
+    estimate's covariance then re-estimates it from the residual (`Problem.target_variance`)."""
+    target_var_floor: np.ndarray | None = None
+    """The part of `target_var` that no image estimate can see (a photograph's quantisation), pooled; or None."""
 
 
 def pool(img: np.ndarray, f: int) -> np.ndarray:
@@ -90,6 +95,26 @@ def block_noise(img: np.ndarray, f: int, w: np.ndarray | None = None) -> np.ndar
     fill = np.nanmean(v) if np.any(np.isfinite(v)) else 0.0
     v = np.where(np.isfinite(v), v, fill)
     return pool(v, f) / (f * f) if w is None else masked_pool(v, w, f, variance=True)
+
+
+RESIDUAL_NOISE_RADIUS = 2
+"""`residual_noise` averages each pixel's estimate over the (2 r + 1)^2 = 25 pixels around it. One pixel's
+second-difference estimate has about 2 degrees of freedom, and the covariance reads its square root, which an
+estimate of k degrees of freedom biases low by about 1 / (4 k): ~1% over 25 pixels (neighbours share differences,
+so fewer than 50 independent ones) against ~12% for one pixel; the noise level varies over the scale of a beam's
+width (8-20 px in the fit's views), which radius 2 keeps."""
+
+
+def residual_noise(r: np.ndarray, var_render: np.ndarray, radius: int = RESIDUAL_NOISE_RADIUS) -> np.ndarray:
+    """Per-pixel noise variance of a target (`(h, w, C)`) from the residual `r` = render - target at the fit's
+    estimate: the second differences of `r` (`second_difference_variance`) estimate the target's variance plus the
+    render's (`var_render`, known from its own samples, subtracted), with the image's structure cancelled where the
+    render follows the target (edges of an emitter, a beam or a shadow are in both), unlike those of the target
+    alone (`block_noise`), which count curvature as noise. Averaged over `radius` (NaN-valued pixels, a masked
+    pixel, are left out), at least 0; a pixel without any estimate gets the image's mean."""
+    v = box_mean(second_difference_variance(r) - np.asarray(var_render, np.float64), radius)
+    fill = max(float(np.nanmean(v)), 0.0) if np.any(np.isfinite(v)) else 0.0
+    return np.maximum(np.where(np.isfinite(v), v, fill), 0.0)
 
 
 def box_mean(img: np.ndarray, r: int) -> np.ndarray:
@@ -153,8 +178,10 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
         var = block_noise(target, downscale, w)
     else:
         var = masked_pool(np.asarray(noise, np.float64), w, downscale, variance=True)
+    floor = None
     if noise_floor is not None:
-        var = np.maximum(var, masked_pool(np.asarray(noise_floor, np.float64), w, downscale, variance=True))
+        floor = masked_pool(np.asarray(noise_floor, np.float64), w, downscale, variance=True)
+        var = np.maximum(var, floor)
     small_ok = None if valid is None else pool(ok[:, :, None].astype(np.float64), downscale)[:, :, 0] >= 1.0
     if lit.any():
         some = pool(w, downscale)[:, :, 0] > 0
@@ -162,7 +189,7 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     if small_ok is not None and not np.any(small_ok):
         raise FitError(f"{name}: no pixel at the fit resolution (1/{downscale}) is free of masked pixels")
     return View(scene, masked_pool(target, w, downscale), name, target_spp, var, downscale, small_ok, int(lit.sum()),
-                w[:, :, 0].astype(np.float32) if lit.any() else None)
+                w[:, :, 0].astype(np.float32) if lit.any() else None, noise is None and not target_spp, floor)
 
 
 def masked_pool(img, w, f: int, variance: bool = False):
@@ -390,19 +417,29 @@ class Problem:
                             for v, s in zip(var, self.scales)]) / self.n * self.valid
         return Pass(e, u, np.asarray(J, np.float64) / root, spp)
 
-    def target_variance(self, u: np.ndarray | None) -> np.ndarray:
+    def target_variance(self, u: np.ndarray | None, residual: np.ndarray | None = None,
+                        var_render: np.ndarray | None = None) -> np.ndarray:
         """Each element's variance of the target (scaled units): for a jaxfog target from its header's spp (the
         render's per-sample variance `u` over the `spp_T f^2` samples of a pooled pixel), else from the target
-        itself (`View.target_var`, the block estimate)."""
+        itself (`View.target_var`, the block estimate); with `residual` (render - target at an estimate, scaled
+        units) and the render's variance of it `var_render`, a target whose noise was estimated from its own
+        pixels gets `residual_noise` instead (at least its `target_var_floor`)."""
         parts, at = [], 0
         for v, s in zip(self.views, self.scales):
-            nv = v.target.size
+            sl = slice(at, at + v.target.size)
             if v.target_spp and u is not None:
-                parts.append(u[at:at + nv] / (v.target_spp * v.downscale ** 2))
+                parts.append(u[sl] / (v.target_spp * v.downscale ** 2))
+            elif v.noise_from_image and residual is not None and var_render is not None:
+                ok = self.valid[sl].reshape(v.target.shape) > 0
+                r = np.where(ok, np.reshape(residual[sl], v.target.shape), np.nan)
+                tv = residual_noise(r, np.reshape(var_render[sl], v.target.shape))
+                if v.target_var_floor is not None:
+                    tv = np.maximum(tv, np.asarray(v.target_var_floor, np.float64) / (s * s * self.n))
+                parts.append(np.where(ok, tv, 0.0).ravel())
             else:
                 tv = v.target_var if v.target_var is not None else np.zeros(v.target.shape)
                 parts.append(np.asarray(tv, np.float64).ravel() / (s * s * self.n))
-            at += nv
+            at += v.target.size
         return np.concatenate(parts)
 
     def split(self, x: np.ndarray) -> list[np.ndarray]:

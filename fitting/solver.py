@@ -329,6 +329,9 @@ def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
     if step is None:
         raise FitError(f"the images do not change with the fitted parameters at {_values(problem.names, state.y)}: "
                        f"nothing to fit")
+    if any(v.noise_from_image for v in problem.views):  # the target's noise from the residual at the estimate
+        step = gauss_newton(pa, pb, state.w, problem.target_variance(u, step.r, step.var_render),
+                            problem.pixel_of) or step
     length = mahalanobis(step.delta, step.cov)
     y_hat = state.y + step.delta
     rel = _relative_se(problem.names, y_hat, step.cov)

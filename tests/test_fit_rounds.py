@@ -427,3 +427,49 @@ def test_an_estimate_half_is_rendered_by_the_approachs_program_where_it_divides(
     f = 8                                               # a view pooled 8 x 8: 2048 renders fine, 64 would not
     prob.views[0].downscale = f
     assert _program_size(prob, STRATA_SPP_MIN * f * f, STRATA_SPP_MIN * f * f // 2) == STRATA_SPP_MIN * f * f
+
+
+def test_robust_brightness_is_the_plain_ratio_without_fireflies_and_ignores_one():
+    """The search's brightness check reads the median over pixel groups of render / target: on smooth images it is
+    the plain ratio of means (every group's ratio is the image's), and one firefly pixel in the target (a valid
+    256-spp target held one of 2195 where the mean was 0.037) or in a render moves it by at most the spread of the
+    other groups, where the plain ratio moves 15x."""
+    from fitting.search import robust_brightness
+
+    rng = np.random.default_rng(3)
+    target = 1.0 + 0.1 * rng.random((16, 16, 3))
+    renders = np.stack([0.5 * target, 2.0 * target])
+    assert robust_brightness(renders, target) == pytest.approx([0.5, 2.0], rel=1e-12)
+    hot = target.copy()
+    hot[5, 7, 1] = 1e4 * hot.mean()
+    plain = renders.mean(axis=(1, 2, 3)) / hot.mean()
+    assert plain[0] < 0.5 / 10  # the plain ratio is fooled (one value of 768 holds 13x the rest)
+    assert robust_brightness(renders, hot) == pytest.approx([0.5, 2.0], rel=0.02)
+    renders[1, 2, 3, 0] = np.inf  # a render's own non-finite pixel moves its row's group, not the others
+    assert robust_brightness(renders, target)[0] == pytest.approx(0.5, rel=1e-12)
+    assert np.isfinite(robust_brightness(renders, target)[1])
+    assert np.all(np.isnan(robust_brightness(renders, np.zeros_like(target))))
+
+
+def test_residual_noise_removes_the_images_structure_that_the_target_alone_counts_as_noise():
+    """A target with sharp structure (a bright square, as an emitter seen through fog) plus noise of known variance:
+    the second differences of the target alone (`block_noise`) read the edges as noise, those of the residual
+    against a render that follows the structure do not; the render's own variance is subtracted. Tolerance: the
+    mean of 64 x 64 pixels' estimates, each with ~2 degrees of freedom, has a relative standard error ~2%; 10%."""
+    from fitting.problem import block_noise, residual_noise
+
+    rng = np.random.default_rng(11)
+    h = w = 64
+    truth = np.full((h, w, 3), 0.2)
+    truth[20:40, 24:44] = 5.0
+    var_t, var_r = 4e-4, 1e-4
+    target = truth + rng.normal(0.0, math.sqrt(var_t), truth.shape)
+    render = truth + rng.normal(0.0, math.sqrt(var_r), truth.shape)
+    est = residual_noise(render - target, np.full(truth.shape, var_r))
+    assert est.shape == truth.shape and np.all(est >= 0)
+    assert float(est.mean()) == pytest.approx(var_t, rel=0.10)
+    assert float(block_noise(target, 1).mean()) > 20 * var_t  # the edges, counted as noise
+    masked = render - target
+    masked[0:8] = np.nan  # masked pixels are left out, their neighbours' estimates stand
+    est_m = residual_noise(masked, np.full(truth.shape, var_r))
+    assert np.all(np.isfinite(est_m)) and float(est_m[8:].mean()) == pytest.approx(var_t, rel=0.10)
