@@ -473,3 +473,33 @@ def test_residual_noise_removes_the_images_structure_that_the_target_alone_count
     masked[0:8] = np.nan  # masked pixels are left out, their neighbours' estimates stand
     est_m = residual_noise(masked, np.full(truth.shape, var_r))
     assert np.all(np.isfinite(est_m)) and float(est_m[8:].mean()) == pytest.approx(var_t, rel=0.10)
+
+
+def test_a_screen_that_reaches_a_full_solves_region_is_not_solved_again():
+    """A screened start whose accepted approach point lies inside a full solve's 95% region (chi^2_2 = 5.99 in its
+    standard errors) has joined that basin and the next start is screened (the last: the fit ends); a point outside
+    it, a region of a weakly determined solve (a standard error beyond half the trust region) or of Jacobians that
+    disagree (quality below QUALITY_MIN), and a screen's own estimate never count."""
+    from types import SimpleNamespace as NS
+
+    import fitting.solver as so
+    from fitting.rounds import Check
+
+    cfg, log = so.FitConfig(), lambda *a: None
+    problem = NS(names=["sigma_t", "g"])
+
+    def attempt(cov, quality=1.0, screened=False):
+        step = NS(delta=np.array([0.1, 0.0]), cov=cov, quality=quality)
+        return so.Attempt(np.zeros(2), step, None, Check([3.0], [3.0] * 3, 3.0), screened=screened)
+
+    starts = tuple(np.full(2, float(i)) for i in range(3))
+    state = so.FitState(phase="approach", round=9, y=starts[1], init={}, t0=0.0, c0=0.0, starts=starts, start=1,
+                        screen=True, attempts=(attempt(0.01 * np.eye(2)),))
+    inside, outside = np.array([0.1 + 0.2, 0.1]), np.array([0.1 + 0.3, 0.1])  # 5.0 and 10.0 in chi^2
+    assert so._joined(problem, state, inside, cfg) and not so._joined(problem, state, outside, cfg)
+    for a in (attempt(np.diag([0.01, (cfg.max_step_u / 2 * 1.01) ** 2])), attempt(0.01 * np.eye(2), quality=0.4),
+              attempt(0.01 * np.eye(2), screened=True)):
+        assert not so._joined(problem, state.replace(attempts=(a,)), inside, cfg)
+    nxt = so._next_start(state, log)
+    assert (nxt.phase, nxt.start, nxt.screen, nxt.passes, nxt.base) == ("approach", 2, True, (), None)
+    assert so._next_start(nxt, log).phase == "done"
