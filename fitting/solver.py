@@ -416,10 +416,10 @@ def _next_start(state: FitState, log) -> FitState:
 
 
 def _joined(problem: Problem, state: FitState, y: np.ndarray, cfg: FitConfig) -> bool:
-    """Whether `y` (a screen's accepted approach point or estimate) lies in the 95% region (`chi^2_k`, its own covariance) of a
-    full solve's estimate whose region is resolved (the two Jacobians agree, `QUALITY_MIN`, and every standard error
-    within half the trust region, so the region is one basin's, not a weakly determined direction's). A screen there
-    has joined that basin: its solve would end at the same minimum, whose check cannot read below the solve's by
+    """Whether `y` (a screen's accepted approach point or estimate) lies in the 95% region (`chi^2_k`, its own
+    covariance) of a full solve's estimate whose region is resolved (the two Jacobians agree, `QUALITY_MIN`, and every
+    standard error within half the trust region: one basin's region, not a weakly determined direction's). A screen
+    there has joined that basin: its solve would end at the same minimum, whose check cannot read below the solve's by
     `SCREEN_MARGIN` except by the checks' noise (and the lower of two checks of one basin gains no accuracy), so it
     is not run on. Measured on the foreign mesh case, whose truth's basin reads 3.7x the noise and so screens its four
     other starts: the screens ran 2-6 approach rounds and 2-3 estimate passes each (25 s of the fit's 45), and every
