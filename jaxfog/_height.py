@@ -179,6 +179,9 @@ class HeightFog(AbstractMedium):
         check_vector("HeightFog", "up", self.up)
         check_phase_and_extent("HeightFog", self.phase, self.extent)
 
+    def supports_estimator(self, estimator: str) -> bool:
+        return True
+
     def fog_interval(self, o, d, s):
         return 0.0, s
 

@@ -122,6 +122,9 @@ def sampling_medium(medium: AbstractMedium | None, options: SamplingOptions, pro
     """The sampler for the chosen estimator: the medium whose values decide distances, branches and phase samples."""
     if medium is None:
         return None
+    if not medium.supports_estimator(options.estimator):
+        raise ValueError(f'estimator="{options.estimator}" is not defined for this {type(medium).__name__} '
+                         f'(its docstring says which are); use "detached" or "proposal"')
     if options.estimator == "reparam":
         return medium
     if options.estimator == "detached":

@@ -162,6 +162,11 @@ class AbstractMedium(eqx.Module):
         """Scattering coefficient `sigma_s` at the point `p`, RGB, 1/scene unit."""
 
     @abc.abstractmethod
+    def supports_estimator(self, estimator: str) -> bool:
+        """Whether the gradient estimator `estimator` ("detached", "reparam", "proposal") is defined for this
+        medium (static: decided by its structure)."""
+
+    @abc.abstractmethod
     def fog_interval(self, o, d, s) -> tuple[Float[Array, ""], Float[Array, ""]]:
         """The part `[a, b]` of the segment `[0, s]` where there is fog (`a >= b`: none); `(0, s)` for a medium
         that fills space. The tracer clips its equiangular samples to it."""
@@ -240,6 +245,9 @@ class HomogeneousMedium(AbstractMedium):
             return 0.0, s
         t0, t1 = box_interval(self.bounds[0], self.bounds[1], o, d)
         return jnp.clip(t0, 0.0, s), jnp.clip(t1, 0.0, s)
+
+    def supports_estimator(self, estimator: str) -> bool:
+        return True
 
     def _fog_part(self, o, d, s):
         """`(a, L)`: where the fog starts on the segment and its length there (`(0, s)` without bounds)."""

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
 
 from ._bsdf import Glass, Mirror
+from ._grid import MAJORANT_CELLS
 from ._height import HeightFog
 from ._lights import SPOT_CUTOFF_DEFAULT, spot_beam_width_default
 from ._medium import HomogeneousMedium
@@ -215,7 +216,16 @@ def _build_height(sigma_0, height_scale, base_height, albedo, g, phase, up, exte
                      up=up, extent=float(extent))
 
 
-def _build_grid(file, bounds, scale, albedo, g, phase, extent):
+def _tracking_mode(values: dict, path: str) -> None:
+    """A grid's `tracking` is one of `_grid.TRACKING`."""
+    from ._grid import TRACKING
+
+    if values["tracking"] not in TRACKING:
+        raise _Invalid(_join(path, "tracking"), repr(values["tracking"]),
+                       "expected one of " + ", ".join(repr(t) for t in TRACKING))
+
+
+def _build_grid(file, bounds, scale, albedo, g, phase, extent, tracking, majorant_cells):
     import jax.numpy as jnp
 
     from ._grid import GridMedium
@@ -225,7 +235,8 @@ def _build_grid(file, bounds, scale, albedo, g, phase, extent):
     if phase is None:
         phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
     grid, box = load_grid(file, bounds)  # checked (and the path resolved) by `_check_grid_file` before
-    return GridMedium(density=grid, scale=scale, albedo=albedo, phase=phase, bounds=box, extent=float(extent))
+    return GridMedium(density=grid, scale=scale, albedo=albedo, phase=phase, bounds=box, extent=float(extent),
+                      tracking=tracking, majorant_cells=int(majorant_cells))
 
 
 def _min_below_max(values: dict, path: str) -> None:
@@ -427,8 +438,10 @@ MEDIA = {
             "g": Field(NUMBER, default=None, range=G_RANGE),
             "phase": Field(Typed(PHASES), default=None),
             "extent": Field(NUMBER, default=1000.0, range=POSITIVE),
+            "tracking": Field(TEXT, default="exact"),
+            "majorant_cells": Field(INTEGER, default=MAJORANT_CELLS, range=POSITIVE),
         },
-        checks=(_phase_or_g,),
+        checks=(_phase_or_g, _tracking_mode),
         build=_build_grid,
     ),
 }
