@@ -22,8 +22,17 @@ equiangular MIS and the estimators need. For the "reparam" estimator the distanc
 implicit function theorem, `dt = (dT - d tau(t)) / sigma(t)`, written as a first-order correction of the solved
 `t` (no derivative flows through the iterations).
 
-Delta and ratio tracking (Mitsuba 3, pbrt-v4) estimate the same transmittance and distance with a majorant; here
-they are computed, at the cost of reading every cell the ray crosses (`docs/results/grid.md` measures it).
+**Ratio tracking** (`tracking="ratio"`): the exact profile reads every cell the ray crosses, which on fine grids
+costs far more than the rest of a path. A coarse *majorant grid* (`majorant_cells` per axis) holds, per cell, the
+largest and smallest value the trilinear `D` takes there (`block_bounds`); a ray's coarse profile is its few
+intervals through it (`coarse_profile`, one read each). Free flight then samples the majorant's piecewise-constant
+density exactly (so its pdf is known: the equiangular MIS and the estimators' weights are unchanged), and every
+transmittance the weights need is estimated by residual ratio tracking against it (`ratio_tracking`: the smallest
+value as control, Poisson points at the rate of the difference; Novak et al. 2014), unbiased, with a cost that
+follows the difference's optical depth instead of the grid's resolution. The points are drawn from a hash of the
+ray (`ray_seed`), so a fixed key still gives an image that is a smooth function of the voxel values. Its loop is a
+`lax.while_loop`: forward-mode derivatives (`jax.jvp`, `jacfwd`) only; reverse mode needs `tracking="exact"`.
+`docs/results/grid.md` measures the two against each other: time per sample and variance.
 
 RGB grids (three channels of extinction) use one-sample spectral MIS over the channels: channel `c`'s technique
 chooses the medium branch with `q_c` and samples its own distance; the branch is taken with `q = mean_c q_c`, the

@@ -331,17 +331,20 @@ def test_voxel_gradients_of_a_render_match_finite_differences():
 
 @pytest.mark.slow  # Mitsuba 3 at 4 x 4096 spp and jaxfog at 512 spp: a few minutes on 2 cores
 def test_the_patchy_grid_agrees_with_mitsuba():
-    """The shipped patchy grid (16^3) at 16 x 16 px, max_depth 3: the image means agree within 2% plus 3 standard
-    errors of the difference (jaxfog's from its per-pixel variances, Mitsuba's from four independent renders)."""
+    """The shipped patchy grid (16^3) at 16 x 16 px, max_depth 3, with exact profiles and with ratio tracking: each
+    image mean agrees with Mitsuba's within 2% plus 3 standard errors of the difference (jaxfog's from its per-pixel
+    variances, Mitsuba's from four independent renders)."""
     pytest.importorskip("mitsuba")
     scene = REPO / "data_synthetic" / "scenes" / "grid_fog.json"
     ov = ["camera.width=16", "camera.height=16", "integrator.max_depth=3"]
     means = [jf.render_mitsuba(scene, spp=4096, seed=s, overrides=ov).mean() for s in range(4)]
     mi_mean, mi_se = float(np.mean(means)), float(np.std(means, ddof=1)) / 2.0
-    img, var = jf.render(jf.load_scene(scene, ov).scene, jax.random.key(5), 512, variance=True)
-    img, var = np.asarray(img), np.asarray(var)
-    se = math.hypot(math.sqrt(var.sum()) / img.size, mi_se)
-    assert abs(img.mean() - mi_mean) < 0.02 * mi_mean + 3 * se, (img.mean(), mi_mean, se)
+    for tracking in ("exact", "ratio"):
+        sc = jf.load_scene(scene, ov + [f'medium.tracking="{tracking}"']).scene
+        img, var = jf.render(sc, jax.random.key(5), 512, variance=True)
+        img, var = np.asarray(img), np.asarray(var)
+        se = math.hypot(math.sqrt(var.sum()) / img.size, mi_se)
+        assert abs(img.mean() - mi_mean) < 0.02 * mi_mean + 3 * se, (tracking, img.mean(), mi_mean, se)
 
 
 GRID_FIT = REPO / "data_synthetic" / "grid_fit"
