@@ -1,8 +1,8 @@
 """Fit every voxel of a density grid to images from several views (a `GridMedium` scene per view).
 
     python -m fitting.grid SCENE1.json TARGET1.exr [SCENE2.json TARGET2.exr ...] --out OUT \\
-        [--iterations 200] [--spp 8] [--downscale F] [--start 0.3] [--seed 0] [--smooth auto | WEIGHT] \\
-        [--holdout SCENE.json TARGET.exr ...]
+        [--solver gauss-newton | adam] [--iterations N] [--spp N] [--downscale F] [--start 0.3] [--seed 0] \\
+        [--smooth auto | WEIGHT] [--holdout SCENE.json TARGET.exr ...]
     python -m fitting.fit SCENE1.json TARGET1.exr ... --fit density --out RESULT.json   # the same fit
 
 Every scene holds the same grid medium (shape and box; the first scene's grid is only its shape: the fit starts
@@ -12,6 +12,11 @@ easy as in a dense one). Each iteration renders every view twice with independen
 `sum_px stop_gradient(I_a - T) I_b / var` through the second render (reverse mode through the tracer: the
 two-key gradient, unbiased where the squared residual of one render is not) plus a smoothness prior
 `weight * sum (theta_i - theta_j)^2` over neighbouring voxels; Adam (step 0.05 in log-density) moves `theta`.
+
+`--solver gauss-newton`: Levenberg-Marquardt on the same objective with matrix-free normal equations
+(`gn_step`: Jacobian-vector products of a linearised render, their transpose for the vector-Jacobian products,
+conjugate gradients through lineax); `--iterations` counts its steps, each from renders at `--spp` (use more than
+Adam's: a step is as noisy as its gradient). docs/results/grid.md compares the two at equal wall time.
 
 The prior's weight is chosen by the data (`--smooth auto`, the discrepancy principle): the fit's chi^2 per pixel
 (the residual's mean square over the render noise plus the target's pixel-to-pixel noise), averaged over 20
@@ -262,6 +267,160 @@ def voxel_se(views, theta, spp: int, key, weight: float) -> tuple[np.ndarray, st
     return 1.0 / np.sqrt(np.maximum(info, 0.0) + prior_diag), "diagonal"
 
 
+# ------------------------------------------------------------------------------------ Gauss-Newton, matrix-free
+CG_STEPS = 20
+"""Conjugate-gradient iterations per Gauss-Newton step: each costs one Jacobian-vector product (forward mode) and
+its transpose (a vector-Jacobian product) per view; the normal equations need not be solved exactly (a truncated
+Newton step), and the damping keeps the system well conditioned."""
+
+CG_RTOL = 1e-2
+"""Relative residual at which conjugate gradients stop early."""
+
+LM_START = 0.1
+"""Levenberg damping at the start, relative to the curvature of the objective along its gradient (`g^T A g / g^T
+g`): a tenth keeps the first step near the Gauss-Newton step but bounded where the images say little."""
+
+LOSS_TOLERANCE = 2.0
+"""How many standard errors of the difference of two loss estimates (each from its renders' pixels) a step's loss
+may exceed the current point's before the step is undone: the estimates are Monte Carlo, and a step undone by
+their noise only raises the damping."""
+
+DAMPING_MAX = 1e6
+"""The largest Levenberg damping (relative): beyond it a step is a gradient step of negligible length."""
+
+WEIGHT_EVERY = 3
+"""Kept Levenberg-Marquardt steps at one prior weight before the discrepancy principle may change it: the
+objective at a fixed weight needs a few steps to settle (measured on the shipped four-view set in
+docs/results/grid.md), and a weight changed at every step chases the noise of one step's chi^2."""
+
+MAX_STEP = 0.5
+"""The largest change of a voxel's log-density in one Gauss-Newton step (a factor e^0.5 = 1.65), as `MAX_POLISH`."""
+
+
+@eqx.filter_jit
+def gn_step(theta, views, key, weight, damping, spp: int):
+    """One damped Gauss-Newton step of the whole objective `L = 1/2 sum_views e^T W e + weight * penalty` from
+    `theta`, matrix-free; `views` as `stack_views` groups them.
+
+    Per view, render `a` is linearised (`jax.linearize`: its Jacobian-vector products, and their transpose, the
+    vector-Jacobian products, without a second forward pass) and render `b` has an independent key: the gradient is
+    `J_a^T W e_b` (unbiased, as the Adam fit's two-key gradient), the loss `1/2 e_a^T W e_b`. The normal equations
+    `(J_a^T W J_a + weight H + lambda I) delta = -g` are solved by conjugate gradients (`lm_direction`). Returns
+    `(delta, data loss, its standard error, penalty, chi2 per pixel, predicted decrease)`."""
+    lins, g, loss, loss_var, chi2 = [], jnp.zeros_like(theta), 0.0, 0.0, 0.0
+    for i, (scenes, target, var) in enumerate(views):  # groups of views stacked along a leading axis
+        keys = jax.random.split(jax.random.fold_in(key, i), (target.shape[0], 2))
+
+        def render_a(th, scenes=scenes, keys=keys):
+            return jax.vmap(lambda sc, k: jaxfog.render(with_density(sc, th), k[0], spp))(scenes, keys)
+
+        img_a, jvp_a = jax.linearize(render_a, theta)
+        img_b, var_b = jax.vmap(lambda sc, k: jaxfog.render(with_density(sc, theta), k[1], spp, variance=True))(
+            scenes, keys)
+        noise = var + var_b
+        w = 1.0 / (noise + 1e-3 * jnp.mean(noise, axis=(1, 2, 3), keepdims=True) + 1e-12)
+        vjp_a = jax.linear_transpose(jvp_a, theta)
+        e_a, e_b = img_a - target, img_b - target
+        g = g + vjp_a(w * e_b)[0]
+        terms = 0.5 * e_a * w * e_b  # independent across pixels: the loss's variance is about the sum of squares
+        loss, loss_var = loss + jnp.sum(terms), loss_var + jnp.sum(terms ** 2)
+        chi2 = chi2 + jnp.sum(jnp.mean(e_b ** 2 * w, axis=(1, 2, 3)))
+        lins.append((jvp_a, vjp_a, w))
+    n_views = sum(v[1].shape[0] for v in views)
+    penalty, g_prior = jax.value_and_grad(neighbour_penalty)(theta)
+    g = g + weight * g_prior
+
+    def normal(v):
+        out = weight * jax.jvp(jax.grad(neighbour_penalty), (theta,), (v,))[1]
+        for jvp_a, vjp_a, w in lins:
+            out = out + vjp_a(w * jvp_a(v))[0]
+        return out
+
+    delta, predicted = lm_direction(g, normal, damping)
+    return delta, loss, jnp.sqrt(loss_var), penalty, chi2 / n_views, predicted
+
+
+def lm_direction(g, normal, damping):
+    """`(delta, predicted)`: the Levenberg-Marquardt step `-(A + lambda I)^-1 g` for the symmetric positive
+    semi-definite operator `A = normal` (a function), by conjugate gradients through lineax (`CG_STEPS`,
+    `CG_RTOL`), `lambda = damping * g^T A g / g^T g` (the curvature along the gradient sets the scale), each entry
+    clipped to `MAX_STEP`; and the quadratic model's decrease `-(g^T delta + delta^T A delta / 2)`."""
+    import lineax as lx
+
+    lam = damping * jnp.vdot(g, normal(g)) / jnp.maximum(jnp.vdot(g, g), 1e-30)
+    op = lx.FunctionLinearOperator(lambda v: normal(v) + lam * v, jax.eval_shape(lambda: g),
+                                   lx.positive_semidefinite_tag)
+    sol = lx.linear_solve(op, -g, lx.CG(rtol=CG_RTOL, atol=0.0, max_steps=CG_STEPS), throw=False)
+    delta = jnp.clip(sol.value, -MAX_STEP, MAX_STEP)
+    return delta, -(jnp.vdot(g, delta) + 0.5 * jnp.vdot(delta, normal(delta)))
+
+
+def stack_views(views) -> list:
+    """The views `[(scene, target, var), ...]` as groups `[(scenes, targets, vars), ...]` with a leading axis of
+    views: one group when every scene has the same structure (one render traced and compiled for all of them, under
+    `vmap`), else one group per view."""
+    parts = [eqx.partition(v[0], eqx.is_array) for v in views]
+    same = all(jax.tree.structure(p[0]) == jax.tree.structure(parts[0][0]) and eqx.tree_equal(p[1], parts[0][1])
+               for p in parts)
+    groups = [views] if same else [[v] for v in views]
+    out = []
+    for grp in groups:
+        dyn = [eqx.partition(v[0], eqx.is_array)[0] for v in grp]
+        scenes = eqx.combine(jax.tree.map(lambda *x: jnp.stack(x), *dyn), eqx.partition(grp[0][0], eqx.is_array)[1])
+        out.append((scenes, jnp.stack([v[1] for v in grp]), jnp.stack([v[2] for v in grp])))
+    return out
+
+
+def fit_grid_gauss_newton(views, *, iterations: int, spp: int, start: float, seed: int, smooth, truth=None,
+                          log=print):
+    """Levenberg-Marquardt on the log-density with matrix-free normal equations (`gn_step`), `iterations` calls.
+
+    Each call evaluates a point with new keys: the step's end point is kept when its loss is at most the current
+    point's (within `LOSS_TOLERANCE` standard errors) (the damping then shrinks by the model's agreement, Nielsen's rule); otherwise the damping quadruples
+    and the next call recomputes the step at the current point. The prior's weight by the discrepancy principle
+    after every `WEIGHT_EVERY` kept steps; losses are compared at the current weight (`gn_step` returns the two
+    terms). No closing step (the fit ends at a Gauss-Newton point): the standard errors come from the information
+    at the last point (`voxel_se`). Returns `(density, se, history)` as `fit_grid`."""
+    shape = views[0][0].medium.density.shape[:3]
+    theta = jnp.full(shape, math.log(start), jnp.float32)
+    weight = SMOOTH_START if smooth == "auto" else float(smooth)
+    damping, key = LM_START, jax.random.key(seed)
+    history, t0 = [], time.perf_counter()
+    groups = stack_views(views)
+    cur, pending, at_weight = None, theta, 0  # cur: (data loss, penalty, predicted decrease, step) at theta
+    for it in range(1, iterations + 1):
+        delta, data, data_se, penalty, chi2, pred = (np.asarray(x) if i == 0 else float(x) for i, x in enumerate(
+            gn_step(pending, groups, jax.random.fold_in(key, it), jnp.float32(weight), jnp.float32(damping), spp)))
+        at_theta = pending is theta
+        # a step is undone only when its loss is above the current one by more than their noise allows
+        kept = (cur is None or at_theta or data + weight * penalty
+                <= cur[0] + weight * cur[1] + LOSS_TOLERANCE * math.hypot(data_se, cur[4]))
+        if kept and not at_theta and cur is not None:
+            # the model's agreement, in [0, 1] (a loss within the noise above the current one counts as 0: x2)
+            rho = min(max((cur[0] + weight * cur[1] - data - weight * penalty) / max(cur[2], 1e-30), 0.0), 1.0)
+            damping = min(damping * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), DAMPING_MAX)
+        if kept:
+            theta, cur = pending, (data, penalty, pred, jnp.asarray(delta), data_se)
+            at_weight += 1
+            if smooth == "auto" and at_weight >= WEIGHT_EVERY:
+                at_weight, weight = 0, weight * 2.0 if chi2 < 1.0 else weight / 2.0 if chi2 > 2.0 else weight
+            pending = theta + cur[3]
+        else:  # the step went too far: recompute it at the current point with more damping
+            damping = min(damping * 4.0, DAMPING_MAX)
+            pending = theta
+        rec = {"iteration": it, "loss": data + weight * penalty, "chi2": chi2, "weight": weight, "damping": damping,
+               "kept": kept, "seconds": time.perf_counter() - t0}
+        if truth is not None:
+            rec["volume_error"] = float(np.linalg.norm(np.exp(np.asarray(theta)) - truth) / np.linalg.norm(truth))
+        history.append(rec)
+        log(f"  step {it}: chi2/px {chi2:.3f}, {'kept' if kept else 'undone'}, damping {damping:.3g}, prior weight "
+            f"{weight:.3g}, " + (f"volume error {rec['volume_error']:.3f}, " if truth is not None else "")
+            + f"{rec['seconds']:.0f} s")
+    se_theta = voxel_se(views, theta, max(spp, SE_SPP_MIN), jax.random.fold_in(key, 10 ** 6), weight)[0]
+    density = np.exp(np.asarray(theta))
+    return density, density * se_theta, history
+
+
 # --------------------------------------------------------------------------------------------------- the fit
 def fit_grid(views, *, iterations: int, spp: int, start: float, seed: int, smooth, truth=None, log=print):
     """Adam on the log-density (module docstring). Returns `(density, se, history)`: the fitted grid `(nz, ny,
@@ -373,14 +532,25 @@ def write_slices(path, fit, se, truth) -> None:
 
 
 # --------------------------------------------------------------------------------------------- command line
+SOLVERS = {"gauss-newton": (12, 128), "adam": (200, 8)}
+"""The solvers of the command line and their default `(iterations, spp)`: Gauss-Newton's steps settle in about 8
+at 128 spp on the shipped four-view set (a step is as noisy as its renders); Adam's many cheap steps average their
+noise (docs/results/grid.md, "Fitting every voxel")."""
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m fitting.grid", description=__doc__.split("\n\n")[0])
     ap.add_argument("inputs", nargs="+", help="SCENE.json TARGET.exr [SCENE2.json TARGET2.exr ...]")
     ap.add_argument("--out", required=True,
                     help="output folder (RESULT.json, RESULT_density.vol, ... in it), or NAME.json (NAME_density.vol, "
                          "NAME_density_se.vol and NAME_slices.png beside it)")
-    ap.add_argument("--iterations", type=int, default=200)
-    ap.add_argument("--spp", type=int, default=8, help="samples per pixel of each render (two per view a step)")
+    ap.add_argument("--solver", choices=list(SOLVERS), default="gauss-newton",
+                    help="gauss-newton (Levenberg-Marquardt, matrix-free normal equations by conjugate gradients; "
+                         "the default) or adam")
+    ap.add_argument("--iterations", type=int, default=None,
+                    help="steps (default: " + ", ".join(f"{k} {v[0]}" for k, v in SOLVERS.items()) + ")")
+    ap.add_argument("--spp", type=int, default=None,
+                    help="samples per pixel of each render, two per view a step (default: "
+                         + ", ".join(f"{k} {v[1]}" for k, v in SOLVERS.items()) + ")")
     ap.add_argument("--downscale", type=int, default=None, help="fit at 1/F of the targets' size (default: 16 px)")
     ap.add_argument("--start", type=float, default=0.3, help="the starting grid's constant value, 1/scene unit")
     ap.add_argument("--seed", type=int, default=0)
@@ -402,6 +572,9 @@ def check_args(args) -> list[tuple[str, str]]:
         for p in (s, t):
             if not os.path.isfile(p):
                 raise ValueError(f"{p}: not found")
+    default_iterations, default_spp = SOLVERS[args.solver]
+    args.iterations = default_iterations if args.iterations is None else args.iterations
+    args.spp = default_spp if args.spp is None else args.spp
     if args.iterations < 1 or args.spp < 1 or args.holdout_spp < 1:
         raise ValueError("--iterations, --spp and --holdout-spp must be >= 1")
     for s, t in args.holdout:
@@ -445,8 +618,9 @@ def main(argv=None) -> int:
     truth = np.asarray(views[0][0].medium.density)[..., 0] * float(views[0][0].medium.scale) if args.truth else None
     print(f"fitting a {'x'.join(map(str, truth.shape if truth is not None else views[0][0].medium.density.shape[:3]))}"
           f" grid to {len(views)} view(s), {args.iterations} iterations")
-    density, se, history = fit_grid(views, iterations=args.iterations, spp=args.spp, start=args.start,
-                                    seed=args.seed, smooth=args.smooth, truth=truth)
+    fit = fit_grid if args.solver == "adam" else fit_grid_gauss_newton
+    density, se, history = fit(views, iterations=args.iterations, spp=args.spp, start=args.start,
+                               seed=args.seed, smooth=args.smooth, truth=truth)
     heldout = []
     for i, ((s_path, t_path), view) in enumerate(zip(args.holdout, held)):
         key = jax.random.fold_in(jax.random.key(args.seed), 2 * 10 ** 6 + i)
@@ -461,11 +635,11 @@ def main(argv=None) -> int:
     scale = float(views[0][0].medium.scale)
     jaxfog.write_vol(paths["density"], density / max(scale, 1e-30), (lo, hi))
     jaxfog.write_vol(paths["se"], se / max(scale, 1e-30), (lo, hi))
-    text = json.dumps({"views": pairs, "heldout": heldout, "history": history}, indent=1)
+    text = json.dumps({"views": pairs, "solver": args.solver, "heldout": heldout, "history": history}, indent=1)
     atomic_write(paths["result"], lambda tmp: open(tmp, "w").write(text))
     write_slices(paths["slices"], density, se, truth)
     chi2 = [r["chi2"] for r in history if "chi2" in r][-1]
-    print(f"done: chi2/px {chi2:.3f} (Adam's last iteration)"
+    print(f"done: chi2/px {chi2:.3f} (the last iteration)"
           + (f", volume error {history[-1]['volume_error']:.3f}" if truth is not None else "")
           + f"; wrote {paths['density']}")
     return 0
