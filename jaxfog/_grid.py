@@ -696,7 +696,7 @@ class GridMedium(AbstractMedium):
         """`sigma_s(t) T_hat(t) / p(t)` with the ratio-tracked transmittance; against a majorant sampler as
         `albedo (sigma / mu) e^(tau_mu - tau_control) prod m / q`, which never underflows."""
         tau_c, prod = self._ratio_transmittance(o, d, t)
-        if isinstance(sampler, GridMedium) and sampler.tracking == "ratio":
+        if sampler.tracking == "ratio":  # a sampler is a grid like the medium (`_integrator.sampling_medium`)
             log_p, mu, tau_mu, m, _ = sampler._majorant_log_density(o, d, s, t)
             ok = (mu > 0) & (q > 0)
             ratio = jnp.where(ok, sigma / jnp.where(ok, mu, 1.0), 0.0)
