@@ -17,6 +17,7 @@ Three kinds of render, each one compiled program however often it is called:
 from __future__ import annotations
 
 import math
+import warnings
 from typing import NamedTuple
 
 import equinox as eqx
@@ -49,6 +50,9 @@ class View(NamedTuple):
     valid: np.ndarray | None = None
     light_pixels: int = 0
     """Source pixels not fitted because they hold a point-like light's image (`light_pixels`)."""
+    fireflies: tuple = ()
+    """`(x, y)` of the source pixels not fitted because each alone moves the target's mean by more than `FIREFLY_Z`
+    of its standard errors (`fireflies`); only for a target whose noise is estimated from the image."""
     fine_weight: np.ndarray | None = None
     """Float `(H, W)` at the target's resolution, 0 on those source pixels and 1 elsewhere (None: none): a pooled
     pixel is the mean of its other source pixels, in the target and in every pass rendered at the target's
@@ -162,7 +166,9 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     if ok.shape != target.shape[:2]:
         raise FitError(f"{name}: mask is {ok.shape[1]}x{ok.shape[0]} px, the target {target.shape[1]}x"
                        f"{target.shape[0]} px")
-    lit = light_pixels(scene) & ok
+    ff = fireflies(target, ok) if noise is None and not target_spp else np.zeros_like(ok)
+    lit = (light_pixels(scene) | ff) & ok
+    n_light = int((lit & ~ff).sum())
     if np.any(lit) and downscale == 1:
         ok, valid, lit = ok & ~lit, ok & ~lit, np.zeros_like(lit)
     if not np.any(ok) or not float(np.mean(target[ok])) > 0.0:
@@ -188,7 +194,8 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
         small_ok = some if small_ok is None else small_ok & some
     if small_ok is not None and not np.any(small_ok):
         raise FitError(f"{name}: no pixel at the fit resolution (1/{downscale}) is free of masked pixels")
-    return View(scene, masked_pool(target, w, downscale), name, target_spp, var, downscale, small_ok, int(lit.sum()),
+    return View(scene, masked_pool(target, w, downscale), name, target_spp, var, downscale, small_ok, n_light,
+                tuple((int(x), int(y)) for y, x in zip(*np.nonzero(ff))),
                 w[:, :, 0].astype(np.float32) if lit.any() else None, noise is None and not target_spp, floor)
 
 
@@ -233,6 +240,49 @@ def light_pixels(scene: jaxfog.Scene) -> np.ndarray:
         near_y = (rows + 1 + LIGHT_MARGIN > y) & (rows - LIGHT_MARGIN < y)
         out |= near_y[:, None] & near_x[None, :]
     return out
+
+
+FIREFLY_FACTOR = 10.0
+"""A firefly candidate (`fireflies`) is brighter than each of its 8 neighbours by this factor: no smooth image and no
+edge has such a pixel (an edge pixel has a neighbour as bright on its bright side); a light's own image does, and is
+left out anyway (`light_pixels`). Of the shipped targets, jaxfog's renders have none; Mitsuba's 2048-spp targets
+1-81 per view, holding at most 8.7% of their view's light each (docs/results/fit_solver.md, "Fireflies")."""
+
+FIREFLY_Z = 30.0
+"""A candidate is left out where its excess over its neighbours' median moves the view's mean by more than this many
+standard errors of that mean (the other pixels' second-difference noise, `second_difference_variance`). A
+path tracer's fireflies near a light have no finite variance, so their sizes run on without a gap; the bound is where
+they stop being noise a fit can carry. Measured on 140 views of Mitsuba 3 targets at 2048 spp (the shipped ones and
+resampled ones, `benchmarks.foreign_resampled`; docs/results/fit_solver.md, "Fireflies"), the largest read 131
+(one pixel holding 64% of its view's light: the fit was refused, "the best residual is 25x the expected noise"),
+then 20.7 and 15.6 (8.7% and 12%: fitted within 0.6 of their standard errors, which they widen), then 6.4 and less.
+Below the bound a firefly stays in: leaving out the large draws of a heavy tail biases the target low."""
+
+
+def fireflies(target: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Bool `(H, W)`: the pixels of `target` (`(H, W, 3)`, among `ok`) that are single-sample fireflies too strong for
+    any fit: brighter than each of their 8 neighbours by `FIREFLY_FACTOR`, and moving the view's mean by more than
+    `FIREFLY_Z` of its standard errors. A path tracer without equiangular sampling draws them where a path vertex
+    falls next to a point or spot light (the light's `1 / r^2` has no finite variance there); their expectation is
+    spread over every pixel, not in the one that drew it."""
+    lum = np.where(ok, np.asarray(target, np.float64).sum(axis=-1), np.nan)
+    H, W = lum.shape
+    pad = np.pad(lum, 1, constant_values=np.nan)
+    nb = np.stack([pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                   if dy or dx], axis=-1)
+    with warnings.catch_warnings():  # a pixel without valid neighbours: NaN, no candidate
+        warnings.simplefilter("ignore", RuntimeWarning)
+        top, med = np.nanmax(nb, axis=-1), np.nanmedian(nb, axis=-1)
+    cand = ok & np.isfinite(top) & (lum > FIREFLY_FACTOR * np.maximum(top, 0.0)) & (lum > 0)
+    if not np.any(cand):
+        return cand
+    clean = np.where(cand, med, lum)[:, :, None]  # the noise of the other pixels, without the candidates' differences
+    keep = ok & ~cand
+    var = second_difference_variance(np.nan_to_num(clean))[:, :, 0]
+    var = np.where(keep & np.isfinite(var), var, 0.0)
+    se_mean = math.sqrt(float(var.sum())) / max(int(keep.sum()), 1)
+    excess = (lum - med) / max(int(ok.sum()), 1)
+    return cand & (excess > FIREFLY_Z * se_mean)
 
 
 STRATA_SPP_MIN = 2

@@ -30,7 +30,7 @@ import numpy as np
 
 from .information import fisher_report, instead, relative_scales
 from .params import SPECS, FitError, jacobian_to_params, to_unconstrained
-from .problem import LIGHT_MARGIN, Pass, Problem, View, stratified
+from .problem import FIREFLY_Z, LIGHT_MARGIN, Pass, Problem, View, stratified
 from .rounds import (QUALITY_MIN, Check, Step, chi2_quantile, damped_step, gauss_newton, mahalanobis, model_check,
                      trust_region, two_key_loss, weights)
 from .search import Scan, check_brightness, distinct_starts, global_search
@@ -495,6 +495,9 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | 
         if v.light_pixels:
             log(f"{v.name}: {v.light_pixels} px within {LIGHT_MARGIN:g} px of a point-like light's image are not fitted "
                 f"(their radiance has no finite variance)")
+        if v.fireflies:
+            log(f"{v.name}: {len(v.fireflies)} firefly pixel(s) not fitted, each moving the target's mean by more than "
+                f"{FIREFLY_Z:g} of its standard errors: (x, y) " + ", ".join(f"{p}" for p in v.fireflies[:8]))
     solver = FogFitSolver(cfg, log)
     state = solver.init(problem, init)
     while not solver.terminate(state):

@@ -108,3 +108,46 @@ def test_a_pass_leaves_a_lights_pixels_out_of_the_pooled_pixels_and_a_coarse_pas
     assert np.all(np.abs(coarse.e[part]) <= 1e-6 * np.abs(prob.t).max())
     assert np.all(coarse.J[part] == 0) and np.all(coarse.u[part] == 0)
     assert np.all(coarse.u[~part] > 0)
+
+
+def test_a_firefly_too_strong_for_any_fit_is_left_out_and_weaker_ones_and_bright_patches_stay():
+    """`fireflies` on a 32 x 32 image of level 1 with normal noise (sd 0.1 per channel, seeded): one pixel whose
+    excess moves the view's mean by 45 standard errors of that mean is flagged; one at 20 (below `FIREFLY_Z` = 30,
+    but 10x brighter than every neighbour) and a bright 3 x 3 patch (an emitter's image: each pixel has a neighbour
+    as bright) are not. The mean's standard error is estimated from second differences over 1024 pixels (relative
+    error a few %), so 45 and 20 are far from the bound. `make_view` leaves the flagged pixel out of a target whose
+    noise comes from the image, and keeps it where the target's header gives its spp (the noise is then known)."""
+    from fitting.problem import FIREFLY_Z, fireflies, make_view
+
+    rng = np.random.default_rng(7)
+    img = 1.0 + 0.1 * rng.standard_normal((32, 32, 3))
+    se_lum = 0.1 * np.sqrt(3.0) / 32.0                      # standard error of the mean of the channels' sum
+    n = 32 * 32
+
+    def with_pixel(z, at=(5, 9)):
+        out = img.copy()
+        out[at] += z * se_lum * n / 3.0                       # excess over the level, per channel
+        return out
+
+    ok = np.ones((32, 32), bool)
+    assert FIREFLY_Z == 30.0
+    assert sorted(zip(*np.nonzero(fireflies(with_pixel(45.0), ok)))) == [(5, 9)]
+    assert not fireflies(with_pixel(20.0), ok).any()
+    patch = img.copy()
+    patch[10:13, 20:23] += 200.0
+    assert not fireflies(patch, ok).any()
+    masked = ok.copy()
+    masked[5, 9] = False
+    assert not fireflies(with_pixel(45.0), masked).any()
+
+    cam = jaxfog.Camera(origin=[0, 1, 4.5], target=[0, 1, -2.5], up=[0, 1, 0], fov=30.0, width=32, height=32)
+    medium = jaxfog.HomogeneousMedium(sigma_t=0.3, albedo=0.9, phase=jaxfog.HenyeyGreenstein(g=0.5))
+    sc = jaxfog.Scene(camera=cam, medium=medium, lights=(jaxfog.DirectionalLight(direction=[0, -1, 0], irradiance=1.0),))
+    target = with_pixel(45.0).astype(np.float32)
+    view = make_view(sc, target, "v", downscale=4)
+    assert view.fireflies == ((9, 5),) and view.light_pixels == 0
+    assert view.fine_weight[5, 9] == 0 and view.fine_weight.sum() == n - 1
+    np.testing.assert_allclose(view.target[1, 2], target[4:8, 8:12].reshape(-1, 3)[np.arange(16) != 5].mean(0),
+                               rtol=1e-5)
+    known = make_view(sc, target, "v", downscale=4, target_spp=256)
+    assert known.fireflies == () and known.fine_weight is None
