@@ -168,7 +168,6 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
                        f"{target.shape[0]} px")
     ff = fireflies(target, ok) if noise is None and not target_spp else np.zeros_like(ok)
     lit = (light_pixels(scene) | ff) & ok
-    n_light = int((lit & ~ff).sum())
     if np.any(lit) and downscale == 1:
         ok, valid, lit = ok & ~lit, ok & ~lit, np.zeros_like(lit)
     if not np.any(ok) or not float(np.mean(target[ok])) > 0.0:
@@ -194,7 +193,8 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
         small_ok = some if small_ok is None else small_ok & some
     if small_ok is not None and not np.any(small_ok):
         raise FitError(f"{name}: no pixel at the fit resolution (1/{downscale}) is free of masked pixels")
-    return View(scene, masked_pool(target, w, downscale), name, target_spp, var, downscale, small_ok, n_light,
+    return View(scene, masked_pool(target, w, downscale), name, target_spp, var, downscale, small_ok,
+                int((lit & ~ff).sum()),
                 tuple((int(x), int(y)) for y, x in zip(*np.nonzero(ff))),
                 w[:, :, 0].astype(np.float32) if lit.any() else None, noise is None and not target_spp, floor)
 
