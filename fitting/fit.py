@@ -293,6 +293,9 @@ def _run(args) -> int:
     result = fit_views(views, names, init, cfg, log=(lambda *_: None) if args.quiet else print)
     truth = common_truth([x[3] for x in loaded])
     print_table(result, truth)
+    for name, pixels in result.fireflies.items():
+        print(f"note: {name}: {len(pixels)} firefly pixel(s) left out (10x brighter than each neighbour; the fit "
+              f"failed with them): (x, y) " + ", ".join(f"({x}, {y})" for x, y in pixels[:8]))
     payload = result.to_json()
     if candidates:
         spp_c = args.candidate_spp or next((v.target_spp for v in views if v.target_spp), 256)

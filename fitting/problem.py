@@ -51,8 +51,7 @@ class View(NamedTuple):
     light_pixels: int = 0
     """Source pixels not fitted because they hold a point-like light's image (`light_pixels`)."""
     fireflies: tuple = ()
-    """`(x, y)` of the source pixels not fitted because each alone moves the target's mean by more than `FIREFLY_Z`
-    of its standard errors (`fireflies`); only for a target whose noise is estimated from the image."""
+    """`(x, y)` of the source pixels left out as fireflies (`fireflies`): set in `without_fireflies` only."""
     fine_weight: np.ndarray | None = None
     """Float `(H, W)` at the target's resolution, 0 on those source pixels and 1 elsewhere (None: none): a pooled
     pixel is the mean of its other source pixels, in the target and in every pass rendered at the target's
@@ -62,6 +61,10 @@ class View(NamedTuple):
     estimate's covariance then re-estimates it from the residual (`Problem.target_variance`)."""
     target_var_floor: np.ndarray | None = None
     """The part of `target_var` that no image estimate can see (a photograph's quantisation), pooled; or None."""
+    without_fireflies: "View | None" = None
+    """The same view with its firefly pixels left out (`fireflies`), for a target whose noise is estimated from the
+    image and that has any; else None. The fit turns to it only where it fails with the targets as they are
+    (`fitting.solver.fit_views`)."""
 
 
 def pool(img: np.ndarray, f: int) -> np.ndarray:
@@ -147,7 +150,28 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     """Check the target against the scene's camera and bring both to the fit resolution (1 / `downscale`). `valid`
     (bool `(H, W)`) the pixels to fit (a photograph's, `fitting.photo`); `noise_floor` (`(H, W, 3)`) each value's
     variance that the target's own block estimate cannot see (quantisation); `noise` (`(H, W, 3)`) each value's noise
-    variance from a camera model (`fitting.photo.Photo.variance`), used instead of the block estimate."""
+    variance from a camera model (`fitting.photo.Photo.variance`), used instead of the block estimate. A target whose
+    noise comes from the image alone and has firefly pixels (`fireflies`) also gets the view without them
+    (`View.without_fireflies`), which the fit uses only where it fails with the targets as they are."""
+    target = _checked_target(scene, target, name, downscale)
+    ok = np.ones(target.shape[:2], bool) if valid is None else np.asarray(valid, bool)
+    if ok.shape != target.shape[:2]:
+        raise FitError(f"{name}: mask is {ok.shape[1]}x{ok.shape[0]} px, the target {target.shape[1]}x"
+                       f"{target.shape[0]} px")
+    lit = light_pixels(scene) & ok
+    pooled = (scene, target, name, downscale, target_spp, valid, ok, noise_floor, noise)
+    view = _pooled_view(*pooled, lit)
+    ff = fireflies(target, ok & ~lit) if noise is None and not target_spp else None
+    if ff is not None and np.any(ff):
+        alt = _pooled_view(*pooled, lit | ff)
+        where = tuple((int(x), int(y)) for y, x in zip(*np.nonzero(ff)))
+        view = view._replace(without_fireflies=alt._replace(light_pixels=view.light_pixels, fireflies=where))
+    return view
+
+
+def _checked_target(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int) -> np.ndarray:
+    """`target` as float32 `(H, W, 3)` after the checks every target passes (shape, camera size, finite, >= 0, the
+    pooling factor)."""
     cam = scene.camera
     target = np.asarray(target, np.float32)
     if target.ndim != 3 or target.shape[2] != 3:
@@ -162,19 +186,19 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     if np.any(target < 0):
         raise FitError(f"{name}: target has {int(np.sum(target < 0))} negative values (smallest "
                        f"{float(target.min()):.4g}); expected linear radiance >= 0")
-    ok = np.ones(target.shape[:2], bool) if valid is None else np.asarray(valid, bool)
-    if ok.shape != target.shape[:2]:
-        raise FitError(f"{name}: mask is {ok.shape[1]}x{ok.shape[0]} px, the target {target.shape[1]}x"
-                       f"{target.shape[0]} px")
-    ff = fireflies(target, ok) if noise is None and not target_spp else np.zeros_like(ok)
-    lit = (light_pixels(scene) | ff) & ok
+    if downscale < 1 or cam.width % downscale or cam.height % downscale:
+        raise FitError(f"downscale {downscale} must be >= 1 and divide the image size {cam.width}x{cam.height}")
+    return target
+
+
+def _pooled_view(scene, target, name, downscale, target_spp, valid, ok, noise_floor, noise, lit) -> View:
+    """The view at the fit resolution with the source pixels `lit` left out (a light's image, fireflies)."""
     if np.any(lit) and downscale == 1:
         ok, valid, lit = ok & ~lit, ok & ~lit, np.zeros_like(lit)
     if not np.any(ok) or not float(np.mean(target[ok])) > 0.0:
         raise FitError(f"{name}: target is black (every pixel 0): nothing to fit; a target rendered with the light "
                        f"off, or the wrong file?")
-    if downscale < 1 or cam.width % downscale or cam.height % downscale:
-        raise FitError(f"downscale {downscale} must be >= 1 and divide the image size {cam.width}x{cam.height}")
+    cam = scene.camera
     small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov,
                           width=cam.width // downscale, height=cam.height // downscale)
     scene = eqx.tree_at(lambda s: s.camera, scene, small)
@@ -193,10 +217,9 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
         small_ok = some if small_ok is None else small_ok & some
     if small_ok is not None and not np.any(small_ok):
         raise FitError(f"{name}: no pixel at the fit resolution (1/{downscale}) is free of masked pixels")
-    return View(scene, masked_pool(target, w, downscale), name, target_spp, var, downscale, small_ok,
-                int((lit & ~ff).sum()),
-                tuple((int(x), int(y)) for y, x in zip(*np.nonzero(ff))),
-                w[:, :, 0].astype(np.float32) if lit.any() else None, noise is None and not target_spp, floor)
+    return View(scene, masked_pool(target, w, downscale), name, target_spp, var, downscale, small_ok, int(lit.sum()),
+                fine_weight=w[:, :, 0].astype(np.float32) if lit.any() else None,
+                noise_from_image=noise is None and not target_spp, target_var_floor=floor)
 
 
 def masked_pool(img, w, f: int, variance: bool = False):
@@ -243,46 +266,28 @@ def light_pixels(scene: jaxfog.Scene) -> np.ndarray:
 
 
 FIREFLY_FACTOR = 10.0
-"""A firefly candidate (`fireflies`) is brighter than each of its 8 neighbours by this factor: no smooth image and no
-edge has such a pixel (an edge pixel has a neighbour as bright on its bright side); a light's own image does, and is
-left out anyway (`light_pixels`). Of the shipped targets, jaxfog's renders have none; Mitsuba's 2048-spp targets
-1-81 per view, holding at most 8.7% of their view's light each (docs/results/fit_solver.md, "Fireflies")."""
-
-FIREFLY_Z = 30.0
-"""A candidate is left out where its excess over its neighbours' median moves the view's mean by more than this many
-standard errors of that mean (the other pixels' second-difference noise, `second_difference_variance`). A
-path tracer's fireflies near a light have no finite variance, so their sizes run on without a gap; the bound is where
-they stop being noise a fit can carry. Measured on 140 views of Mitsuba 3 targets at 2048 spp (the shipped ones and
-resampled ones, `benchmarks.foreign_resampled`; docs/results/fit_solver.md, "Fireflies"), the largest read 131
-(one pixel holding 64% of its view's light: the fit was refused, "the best residual is 25x the expected noise"),
-then 20.7 and 15.6 (8.7% and 12%: fitted within 0.6 of their standard errors, which they widen), then 6.4 and less.
-Below the bound a firefly stays in: leaving out the large draws of a heavy tail biases the target low."""
+"""A firefly (`fireflies`) is brighter than each of its 8 neighbours by this factor: no smooth image and no edge has
+such a pixel (an edge pixel has a neighbour as bright on its bright side); a light's own image does, and is left out
+anyway (`light_pixels`). Of the shipped targets jaxfog's renders have none; Mitsuba's 2048-spp targets 0-81 per view
+(docs/results/fit_solver.md, "Fireflies")."""
 
 
 def fireflies(target: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Bool `(H, W)`: the pixels of `target` (`(H, W, 3)`, among `ok`) that are single-sample fireflies too strong for
-    any fit: brighter than each of their 8 neighbours by `FIREFLY_FACTOR`, and moving the view's mean by more than
-    `FIREFLY_Z` of its standard errors. A path tracer without equiangular sampling draws them where a path vertex
-    falls next to a point or spot light (the light's `1 / r^2` has no finite variance there); their expectation is
-    spread over every pixel, not in the one that drew it."""
+    """Bool `(H, W)`: the pixels of `target` (`(H, W, 3)`, among `ok`) brighter than each of their valid 8 neighbours
+    by `FIREFLY_FACTOR` (the channels' sum). A path tracer without equiangular sampling draws such single-sample
+    fireflies where a path vertex falls next to a point or spot light (the light's `1 / r^2` has no finite variance
+    there): their expectation is spread over every pixel, not in the one that drew it. The fit keeps them (leaving
+    out the large draws of a heavy tail biases the target low, and the residuals' standard errors see them) unless
+    the fit fails with them (`fitting.solver.fit_views`)."""
     lum = np.where(ok, np.asarray(target, np.float64).sum(axis=-1), np.nan)
     H, W = lum.shape
     pad = np.pad(lum, 1, constant_values=np.nan)
     nb = np.stack([pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
                    if dy or dx], axis=-1)
-    with warnings.catch_warnings():  # a pixel without valid neighbours: NaN, no candidate
+    with warnings.catch_warnings():  # a pixel without valid neighbours: NaN, no firefly
         warnings.simplefilter("ignore", RuntimeWarning)
-        top, med = np.nanmax(nb, axis=-1), np.nanmedian(nb, axis=-1)
-    cand = ok & np.isfinite(top) & (lum > FIREFLY_FACTOR * np.maximum(top, 0.0)) & (lum > 0)
-    if not np.any(cand):
-        return cand
-    clean = np.where(cand, med, lum)[:, :, None]  # the noise of the other pixels, without the candidates' differences
-    keep = ok & ~cand
-    var = second_difference_variance(np.nan_to_num(clean))[:, :, 0]
-    var = np.where(keep & np.isfinite(var), var, 0.0)
-    se_mean = math.sqrt(float(var.sum())) / max(int(keep.sum()), 1)
-    excess = (lum - med) / max(int(ok.sum()), 1)
-    return cand & (excess > FIREFLY_Z * se_mean)
+        top = np.nanmax(nb, axis=-1)
+    return ok & np.isfinite(top) & (lum > FIREFLY_FACTOR * np.maximum(top, 0.0)) & (lum > 0)
 
 
 STRATA_SPP_MIN = 2

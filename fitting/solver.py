@@ -30,7 +30,7 @@ import numpy as np
 
 from .information import fisher_report, instead, relative_scales
 from .params import SPECS, FitError, jacobian_to_params, to_unconstrained
-from .problem import FIREFLY_Z, LIGHT_MARGIN, Pass, Problem, View, stratified
+from .problem import LIGHT_MARGIN, Pass, Problem, View, stratified
 from .rounds import (QUALITY_MIN, Check, Step, chi2_quantile, damped_step, gauss_newton, mahalanobis, model_check,
                      trust_region, two_key_loss, weights)
 from .search import Scan, check_brightness, distinct_starts, global_search
@@ -154,6 +154,9 @@ class FitResult:
     visibility: dict | None = None
     """The meteorological optical range of the fitted extinction with its standard error (`fitting.visibility`);
     None where the fit did not include the extinction."""
+    fireflies: dict = field(default_factory=dict)
+    """Per view, the `(x, y)` source pixels left out as fireflies (`fit_views`): empty unless the fit failed with them
+    and succeeded without them."""
     images: list | None = None
     """Per view, the render at the estimate at the fit resolution (linear radiance; the estimate's passes moved to the
     estimate by their Jacobian): for figures, not written to JSON."""
@@ -485,9 +488,10 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | 
               log: Callable = print) -> FitResult:
     """Fit `names` (starting from `init`, a value for each: a hint for the search) to all `views` jointly. Raises
     FitError for inputs no fit can use (a target darker or brighter than anything the searched region renders);
-    a fit that runs but fails says so in the result (`success`, `messages`)."""
+    a fit that runs but fails says so in the result (`success`, `messages`). Where a fit fails and a target whose
+    noise comes from the image has fireflies (`View.without_fireflies`), it is run again without them, and that fit
+    stands where it succeeds (`FitResult.fireflies` names the pixels left out)."""
     cfg = cfg or FitConfig()
-    problem = Problem(views, names)
     for v in views:
         if v.scene.medium is None and set(names) - {"intensity"}:
             raise FitError(f"{v.name}: the scene has no medium to fit")
@@ -495,9 +499,21 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | 
         if v.light_pixels:
             log(f"{v.name}: {v.light_pixels} px within {LIGHT_MARGIN:g} px of a point-like light's image are not fitted "
                 f"(their radiance has no finite variance)")
-        if v.fireflies:
-            log(f"{v.name}: {len(v.fireflies)} firefly pixel(s) not fitted, each moving the target's mean by more than "
-                f"{FIREFLY_Z:g} of its standard errors: (x, y) " + ", ".join(f"{p}" for p in v.fireflies[:8]))
+    result = _solve(Problem(views, names), init, cfg, log)
+    if result.success or not any(v.without_fireflies for v in views):
+        return result
+    alt = [v.without_fireflies or v for v in views]
+    log("the fit failed; again without the targets' firefly pixels (10x brighter than each neighbour): "
+        + "; ".join(f"{v.name} {len(v.fireflies)} px" for v in alt if v.fireflies))
+    retry = _solve(Problem(alt, names), init, cfg, log)
+    if not retry.success:
+        return result
+    retry.fireflies = {v.name: [list(p) for p in v.fireflies] for v in alt if v.fireflies}
+    retry.rounds += result.rounds
+    return retry
+
+
+def _solve(problem: Problem, init: dict, cfg: FitConfig, log: Callable) -> FitResult:
     solver = FogFitSolver(cfg, log)
     state = solver.init(problem, init)
     while not solver.terminate(state):

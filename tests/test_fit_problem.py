@@ -110,44 +110,39 @@ def test_a_pass_leaves_a_lights_pixels_out_of_the_pooled_pixels_and_a_coarse_pas
     assert np.all(coarse.u[~part] > 0)
 
 
-def test_a_firefly_too_strong_for_any_fit_is_left_out_and_weaker_ones_and_bright_patches_stay():
-    """`fireflies` on a 32 x 32 image of level 1 with normal noise (sd 0.1 per channel, seeded): one pixel whose
-    excess moves the view's mean by 45 standard errors of that mean is flagged; one at 20 (below `FIREFLY_Z` = 30,
-    but 10x brighter than every neighbour) and a bright 3 x 3 patch (an emitter's image: each pixel has a neighbour
-    as bright) are not. The mean's standard error is estimated from second differences over 1024 pixels (relative
-    error a few %), so 45 and 20 are far from the bound. `make_view` leaves the flagged pixel out of a target whose
-    noise comes from the image, and keeps it where the target's header gives its spp (the noise is then known)."""
-    from fitting.problem import FIREFLY_Z, fireflies, make_view
+def test_fireflies_are_pixels_ten_times_brighter_than_every_neighbour_and_a_view_is_made_without_them():
+    """`fireflies` on a 32 x 32 image of level 1 with normal noise (sd 0.1 per channel, seeded): a pixel 12x its
+    level is one, a pixel 8x is not (below FIREFLY_FACTOR, 10x its brightest neighbour, about 1.3), nor is any pixel
+    of a bright 3 x 3 patch (an emitter's image: each has a neighbour as bright), nor one left out by `ok`.
+    `make_view` keeps a target as it is and, where its noise comes from the image, also makes the view without the
+    firefly (the pooled pixel the mean of its other 15 source pixels); where the header gives the target's spp there
+    is no such view."""
+    from fitting.problem import FIREFLY_FACTOR, fireflies, make_view
 
     rng = np.random.default_rng(7)
     img = 1.0 + 0.1 * rng.standard_normal((32, 32, 3))
-    se_lum = 0.1 * np.sqrt(3.0) / 32.0                      # standard error of the mean of the channels' sum
-    n = 32 * 32
-
-    def with_pixel(z, at=(5, 9)):
-        out = img.copy()
-        out[at] += z * se_lum * n / 3.0                       # excess over the level, per channel
-        return out
-
     ok = np.ones((32, 32), bool)
-    assert FIREFLY_Z == 30.0
-    assert sorted(zip(*np.nonzero(fireflies(with_pixel(45.0), ok)))) == [(5, 9)]
-    assert not fireflies(with_pixel(20.0), ok).any()
-    patch = img.copy()
-    patch[10:13, 20:23] += 200.0
-    assert not fireflies(patch, ok).any()
+    assert FIREFLY_FACTOR == 10.0
+    bright = img.copy()
+    bright[5, 9] = 12.0 * 1.3 * 1.0 + 5.0                   # above 10x any neighbour (noise: neighbours below 1.5)
+    bright[20, 3] = 8.0                                     # below 10x its neighbours
+    bright[10:13, 20:23] += 200.0                           # a patch
+    assert sorted(zip(*np.nonzero(fireflies(bright, ok)))) == [(5, 9)]
     masked = ok.copy()
     masked[5, 9] = False
-    assert not fireflies(with_pixel(45.0), masked).any()
+    assert not fireflies(bright, masked).any()
 
     cam = jaxfog.Camera(origin=[0, 1, 4.5], target=[0, 1, -2.5], up=[0, 1, 0], fov=30.0, width=32, height=32)
     medium = jaxfog.HomogeneousMedium(sigma_t=0.3, albedo=0.9, phase=jaxfog.HenyeyGreenstein(g=0.5))
     sc = jaxfog.Scene(camera=cam, medium=medium, lights=(jaxfog.DirectionalLight(direction=[0, -1, 0], irradiance=1.0),))
-    target = with_pixel(45.0).astype(np.float32)
+    target = bright.astype(np.float32)
     view = make_view(sc, target, "v", downscale=4)
-    assert view.fireflies == ((9, 5),) and view.light_pixels == 0
-    assert view.fine_weight[5, 9] == 0 and view.fine_weight.sum() == n - 1
-    np.testing.assert_allclose(view.target[1, 2], target[4:8, 8:12].reshape(-1, 3)[np.arange(16) != 5].mean(0),
+    assert view.fireflies == () and view.fine_weight is None
+    np.testing.assert_allclose(view.target[1, 2], target[4:8, 8:12].reshape(-1, 3).mean(0), rtol=1e-5)
+    alt = view.without_fireflies
+    assert alt.fireflies == ((9, 5),) and alt.light_pixels == 0 and alt.without_fireflies is None
+    assert alt.fine_weight[5, 9] == 0 and alt.fine_weight.sum() == 32 * 32 - 1
+    np.testing.assert_allclose(alt.target[1, 2], target[4:8, 8:12].reshape(-1, 3)[np.arange(16) != 5].mean(0),
                                rtol=1e-5)
-    known = make_view(sc, target, "v", downscale=4, target_spp=256)
-    assert known.fireflies == () and known.fine_weight is None
+    assert make_view(sc, target, "v", downscale=4, target_spp=256).without_fireflies is None
+
