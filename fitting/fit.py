@@ -294,14 +294,14 @@ def _run(args) -> int:
     truth = common_truth([x[3] for x in loaded])
     print_table(result, truth)
     for name, pixels in result.fireflies.items():
-        print(f"note: {name}: {len(pixels)} firefly pixel(s) left out (10x brighter than each neighbour; the fit "
-              f"failed with them): (x, y) " + ", ".join(f"({x}, {y})" for x, y in pixels[:8]))
+        print(f"note: {name}: {len(pixels)} firefly pixel(s) left out (10x brighter than each neighbour; the model "
+              f"check refused the targets with them): (x, y) " + ", ".join(f"({x}, {y})" for x, y in pixels[:8]))
     payload = result.to_json()
     if candidates:
         spp_c = args.candidate_spp or next((v.target_spp for v in views if v.target_spp), 256)
         payload["candidates"] = rank_candidates(result, views, candidates, spp_c, args.spp)
     payload.update({"targets": [v.name for v in views], "truth": truth,
-                    "fireflies": {v.name: [list(p) for p in v.fireflies] for v in views if v.fireflies}, "spp": args.spp, "seed": args.seed,
+                    "spp": args.spp, "seed": args.seed,
                     "budget": args.budget, "downscale": args.downscale, "photos": args.photos or None})
     write_json_atomic(args.out, payload)
     write_figures(args.out, loaded, result, truth)

@@ -63,7 +63,7 @@ class View(NamedTuple):
     """The part of `target_var` that no image estimate can see (a photograph's quantisation), pooled; or None."""
     without_fireflies: "View | None" = None
     """The same view with its firefly pixels left out (`fireflies`), for a target whose noise is estimated from the
-    image and that has any; else None. The fit turns to it only where it fails with the targets as they are
+    image and that has any; else None. The fit turns to it only where the model check refuses the targets as they are
     (`fitting.solver.fit_views`)."""
 
 
@@ -152,7 +152,7 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     variance that the target's own block estimate cannot see (quantisation); `noise` (`(H, W, 3)`) each value's noise
     variance from a camera model (`fitting.photo.Photo.variance`), used instead of the block estimate. A target whose
     noise comes from the image alone and has firefly pixels (`fireflies`) also gets the view without them
-    (`View.without_fireflies`), which the fit uses only where it fails with the targets as they are."""
+    (`View.without_fireflies`), which the fit uses only where the model check refuses the targets as they are."""
     target = _checked_target(scene, target, name, downscale)
     ok = np.ones(target.shape[:2], bool) if valid is None else np.asarray(valid, bool)
     if ok.shape != target.shape[:2]:
@@ -278,7 +278,7 @@ def fireflies(target: np.ndarray, ok: np.ndarray) -> np.ndarray:
     fireflies where a path vertex falls next to a point or spot light (the light's `1 / r^2` has no finite variance
     there): their expectation is spread over every pixel, not in the one that drew it. The fit keeps them (leaving
     out the large draws of a heavy tail biases the target low, and the residuals' standard errors see them) unless
-    the fit fails with them (`fitting.solver.fit_views`)."""
+    the model check refuses the targets with them (`fitting.solver.fit_views`)."""
     lum = np.where(ok, np.asarray(target, np.float64).sum(axis=-1), np.nan)
     H, W = lum.shape
     pad = np.pad(lum, 1, constant_values=np.nan)

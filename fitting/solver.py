@@ -155,8 +155,8 @@ class FitResult:
     """The meteorological optical range of the fitted extinction with its standard error (`fitting.visibility`);
     None where the fit did not include the extinction."""
     fireflies: dict = field(default_factory=dict)
-    """Per view, the `(x, y)` source pixels left out as fireflies (`fit_views`): empty unless the fit failed with them
-    and succeeded without them."""
+    """Per view, the `(x, y)` source pixels left out as fireflies (`fit_views`): empty unless the model check refused
+    the targets with them and the fit succeeded without them."""
     images: list | None = None
     """Per view, the render at the estimate at the fit resolution (linear radiance; the estimate's passes moved to the
     estimate by their Jacobian): for figures, not written to JSON."""
@@ -488,9 +488,11 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | 
               log: Callable = print) -> FitResult:
     """Fit `names` (starting from `init`, a value for each: a hint for the search) to all `views` jointly. Raises
     FitError for inputs no fit can use (a target darker or brighter than anything the searched region renders);
-    a fit that runs but fails says so in the result (`success`, `messages`). Where a fit fails and a target whose
-    noise comes from the image has fireflies (`View.without_fireflies`), it is run again without them, and that fit
-    stands where it succeeds (`FitResult.fireflies` names the pixels left out)."""
+    a fit that runs but fails says so in the result (`success`, `messages`). Where the model check refuses the
+    targets and a target whose noise comes from the image has fireflies (`View.without_fireflies`), the fit is run
+    again without them, and that fit stands where it succeeds (`FitResult.fireflies` names the pixels left out). A
+    fit that fails for another reason (a parameter not pinned down at the budget) is not run again: its fireflies
+    are noise its standard errors count."""
     cfg = cfg or FitConfig()
     for v in views:
         if v.scene.medium is None and set(names) - {"intensity"}:
@@ -500,10 +502,10 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | 
             log(f"{v.name}: {v.light_pixels} px within {LIGHT_MARGIN:g} px of a point-like light's image are not fitted "
                 f"(their radiance has no finite variance)")
     result = _solve(Problem(views, names), init, cfg, log)
-    if result.success or not any(v.without_fireflies for v in views):
+    if not _refused(result, cfg) or not any(v.without_fireflies for v in views):
         return result
     alt = [v.without_fireflies or v for v in views]
-    log("the fit failed; again without the targets' firefly pixels (10x brighter than each neighbour): "
+    log("the model check refused the targets; the fit again without the targets' firefly pixels (10x brighter than each neighbour): "
         + "; ".join(f"{v.name} {len(v.fireflies)} px" for v in alt if v.fireflies))
     retry = _solve(Problem(alt, names), init, cfg, log)
     if not retry.success:
@@ -511,6 +513,12 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | 
     retry.fireflies = {v.name: [list(p) for p in v.fireflies] for v in alt if v.fireflies}
     retry.rounds += result.rounds
     return retry
+
+
+def _refused(result: FitResult, cfg: FitConfig) -> bool:
+    """Whether the model check refused the targets: no point of the searched region explains them (a finite check
+    above `chi2_max`)."""
+    return bool(np.isfinite(result.chi2) and result.chi2 > cfg.chi2_max)
 
 
 def _solve(problem: Problem, init: dict, cfg: FitConfig, log: Callable) -> FitResult:

@@ -104,17 +104,17 @@ def test_fit_says_the_model_does_not_explain_a_different_scene(target):
 
 
 def test_a_target_refused_for_one_firefly_is_fitted_without_it(target):
-    """One pixel of the target holding 60% of its light (a single sample of huge weight, as another renderer draws
-    next to a point light), noise from the image (no header spp): as it is, the fit fails (refused by the model
-    check, or run to sigma_t 0 and not pinned down: both were seen); `fit_views` then fits the view without its
+    """One pixel of the target holding 40% of its light (a single sample of huge weight, as another renderer draws
+    next to a point light), noise from the image (no header spp): as it is, no point of the searched box explains
+    it (the check reads about 1000x the noise) and the fit is refused; `fit_views` then fits the view without its
     firefly (`View.without_fireflies`), succeeds, names the pixel, and finds the truth within 3 standard errors."""
     t = target.copy()
-    t[12, 3] += 1.5 * target.sum(axis=(0, 1))
+    t[12, 3] += 0.4 / 0.6 * target.sum(axis=(0, 1))
     view = make_view(_scene(), t, "tiny", downscale=2)
     assert view.without_fireflies.fireflies == ((3, 12),)
     cfg, init = FitConfig(spp=32, seed=0), {"sigma_t": 0.3, "g": 0.2}
     as_is = fit_views([view._replace(without_fireflies=None)], ["sigma_t", "g"], init, cfg, log=lambda *_: None)
-    assert not as_is.success and not res_ok(as_is)
+    assert not as_is.success and any("does not explain" in m for m in as_is.messages), as_is.messages
     res = fit_views([view], ["sigma_t", "g"], init, cfg, log=lambda *_: None)
     assert res.success and res.fireflies == {"tiny": [[3, 12]]}, res.messages
     assert res_ok(res)
