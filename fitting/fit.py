@@ -300,8 +300,7 @@ def _run(args) -> int:
     if candidates:
         spp_c = args.candidate_spp or next((v.target_spp for v in views if v.target_spp), 256)
         payload["candidates"] = rank_candidates(result, views, candidates, spp_c, args.spp)
-    payload.update({"targets": [v.name for v in views], "truth": truth,
-                    "spp": args.spp, "seed": args.seed,
+    payload.update({"targets": [v.name for v in views], "truth": truth, "spp": args.spp, "seed": args.seed,
                     "budget": args.budget, "downscale": args.downscale, "photos": args.photos or None})
     write_json_atomic(args.out, payload)
     write_figures(args.out, loaded, result, truth)

@@ -505,13 +505,16 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | 
     if not _refused(result, cfg) or not any(v.without_fireflies for v in views):
         return result
     alt = [v.without_fireflies or v for v in views]
-    log("the model check refused the targets; the fit again without the targets' firefly pixels (10x brighter than each neighbour): "
-        + "; ".join(f"{v.name} {len(v.fireflies)} px" for v in alt if v.fireflies))
+    pixels = "; ".join(f"{v.name} {len(v.fireflies)} px" for v in alt if v.fireflies)
+    log(f"the model check refused the targets; the fit again without their firefly pixels (10x brighter than each "
+        f"neighbour): {pixels}")
     retry = _solve(Problem(alt, names), init, cfg, log)
     if not retry.success:
+        result.messages.append(f"fitted again without the targets' firefly pixels ({pixels}): failed as well")
         return result
     retry.fireflies = {v.name: [list(p) for p in v.fireflies] for v in alt if v.fireflies}
     retry.rounds += result.rounds
+    retry.wall_s += result.wall_s
     return retry
 
 
