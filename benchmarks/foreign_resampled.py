@@ -6,7 +6,7 @@ is one draw (the suite and the coverage study keep one target per case and vary 
 
 Needs the `compare` extra (Mitsuba 3). Per case and seed it renders the case's views at the truth with Mitsuba's
 `volpath` (`scalar_rgb`, the manifest's spp unless `--spp`; seed `10 * seed + view`) into `OUT/CASE/SEED/`, runs the
-suite's `python -m fitting.fit` command on them (`fitting.suite.fit_argv`, the fit's defaults), and appends one line
+suite's `python -m fitting.fit` command on them (`fitting.suite.run_case`, the fit's defaults), and appends one line
 to `OUT/fits.jsonl`. Targets and fits already in OUT are kept (a run can be resumed). Prints, per case and parameter,
 the mean error, the standard deviation of the errors over the targets, the mean reported standard error, the mean
 and rms of error / se and the share within 1 and 2 se; writes them to `OUT/summary.json`. `--average` fits also
@@ -19,14 +19,13 @@ import argparse
 import copy
 import json
 import math
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from fitting.suite import REPO, _make_foreign, fit_argv, load_manifest
+from fitting.suite import _make_foreign, load_manifest, run_case
 
 from .common import print_table
 
@@ -70,23 +69,17 @@ def average_targets(case: dict, folders: list[Path], out: Path) -> list[str]:
     return paths
 
 
-def fit(case: dict, targets: list[str], result: Path) -> dict:
-    """The suite's fit command on `targets`; one row: exit code, wall, and per parameter error, se, error / se."""
+def fit(case: dict, targets: list[str], folder: Path) -> dict:
+    """The suite's run of one case (`fitting.suite.run_case`: its fit command, in its own process) on `targets`;
+    one row: exit code, wall, verdict and per parameter error, se, error / se."""
     c = copy.deepcopy(case)
     for view, path in zip(c["views"], targets):
         view["target"] = path
-    cmd = [sys.executable, "-m", "fitting.fit", *fit_argv(c, str(result))]
-    t0 = time.perf_counter()
-    with open(result.with_suffix(".log"), "w") as f:
-        rc = subprocess.run(cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT).returncode
-    res = json.loads(result.read_text()) if result.exists() else {}
-    row = {"case": case["name"], "exit": rc, "wall_s": round(time.perf_counter() - t0, 1), "params": {}}
-    for p in case["fit"]:
-        est, se = res.get("params", {}).get(p), (res.get("uncertainty", {}).get(p) or {}).get("se")
-        if est is not None and se:
-            err = est - case["truth"][p]
-            row["params"][p] = {"estimate": est, "se": se, "error": err, "z": err / se}
-    return row
+    run = run_case(c, folder)
+    params = {r["param"]: {"estimate": r["estimate"], "se": r["se"], "error": r["error"], "z": r["error_over_se"]}
+              for r in run["rows"] if r.get("error") is not None and r.get("se")}
+    return {"case": case["name"], "exit": run["exit"], "wall_s": round(run["wall_s"], 1), "ok": run["ok"],
+            "params": params}
 
 
 def summarise(rows: list[dict]) -> list[dict]:
@@ -132,14 +125,14 @@ def main(argv=None) -> int:
             if (name, seed) in done:
                 continue
             targets = render_targets(case, seed, spp, out / name / str(seed))
-            row = {**fit(case, targets, out / name / str(seed) / "fit.json"), "seed": seed, "spp": spp}
+            row = {**fit(case, targets, out / name / str(seed)), "seed": seed, "spp": spp}
             print(json.dumps(row), flush=True)
             rows.append(row)
             with open(log, "a") as f:
                 f.write(json.dumps(row) + "\n")
         if args.average and (name, None) not in done:
             folders = [out / name / str(s) for s in args.seeds]
-            row = {**fit(case, average_targets(case, folders, out / name / "mean"), out / name / "mean" / "fit.json"),
+            row = {**fit(case, average_targets(case, folders, out / name / "mean"), out / name / "mean"),
                    "seed": None, "spp": spp * len(folders)}
             print(json.dumps(row), flush=True)
             rows.append(row)
