@@ -199,7 +199,7 @@ def _pooled_view(scene, target, name, downscale, target_spp, valid, ok, noise_fl
         raise FitError(f"{name}: target is black (every pixel 0): nothing to fit; a target rendered with the light "
                        f"off, or the wrong file?")
     cam = scene.camera
-    small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov,
+    small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov, near_clip=cam.near_clip,
                           width=cam.width // downscale, height=cam.height // downscale)
     scene = eqx.tree_at(lambda s: s.camera, scene, small)
     w = (~lit).astype(np.float64)[:, :, None]
@@ -305,7 +305,8 @@ def _fine_scene(scene: jaxfog.Scene, f: int) -> jaxfog.Scene:
     if f == 1:
         return scene
     c = scene.camera
-    cam = jaxfog.Camera(origin=c.origin, target=c.target, up=c.up, fov=c.fov, width=c.width * f, height=c.height * f)
+    cam = jaxfog.Camera(origin=c.origin, target=c.target, up=c.up, fov=c.fov, width=c.width * f, height=c.height * f,
+                        near_clip=c.near_clip)
     return eqx.tree_at(lambda s: s.camera, scene, cam)
 
 

@@ -86,8 +86,8 @@ def _small(scene, side: int):
     cam = scene.camera
     if cam.width <= side and cam.height <= side:
         return scene
-    cam = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov, width=side,
-                        height=side * cam.height // cam.width)
+    cam = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov, near_clip=cam.near_clip,
+                        width=side, height=side * cam.height // cam.width)
     return eqx.tree_at(lambda s: s.camera, scene, cam)
 
 

@@ -22,7 +22,12 @@ def _scalar(x) -> Float[Array, ""]:
 class Camera(eqx.Module):
     """Pinhole camera at `origin` looking at `target` (another point) with `up` (scene units; finite, `up` not
     parallel to `target - origin`), horizontal `fov` in degrees in (0, 180), image `width` x `height` pixels,
-    integers >= 1 (static: a new resolution compiles a new program)."""
+    integers >= 1 (static: a new resolution compiles a new program).
+
+    `near_clip` (scene units, finite, >= 0; default 0, a physical camera): each ray starts where it crosses the plane
+    `near_clip` ahead of the camera along its axis, `near_clip / cos(angle to the axis)` from `origin`, as Mitsuba 3's
+    perspective camera does (its default is 0.01). It matters only in fog, where it leaves out that much optical
+    depth. Static: another value compiles another program."""
 
     origin: Float[Array, "3"] = eqx.field(converter=_vec3)
     target: Float[Array, "3"] = eqx.field(converter=_vec3)
@@ -30,8 +35,11 @@ class Camera(eqx.Module):
     fov: Float[Array, ""] = eqx.field(converter=_scalar)
     width: int = eqx.field(static=True)
     height: int = eqx.field(static=True)
+    near_clip: float = eqx.field(static=True, default=0.0, converter=float)
 
     def __check_init__(self):
+        if not (np.isfinite(self.near_clip) and self.near_clip >= 0):
+            raise ValueError(f"Camera: near_clip must be finite and >= 0 (scene units), got {self.near_clip!r}")
         for name in ("width", "height"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -75,4 +83,6 @@ class Camera(eqx.Module):
         sx = (2.0 * pixel[0] / self.width - 1.0) * tan_half
         sy = (1.0 - 2.0 * pixel[1] / self.height) * tan_half * (self.height / self.width)
         d = safe_normalize(forward + sx * right + sy * true_up)
-        return self.origin, d
+        if self.near_clip == 0.0:  # static: the program of a camera without a clip plane has none of this
+            return self.origin, d
+        return self.origin + (self.near_clip / jnp.dot(d, forward)) * d, d

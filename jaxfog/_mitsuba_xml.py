@@ -56,6 +56,7 @@ from xml.parsers import expat
 
 import numpy as np
 
+from ._mitsuba import NEAR_CLIP
 from ._scene_io import SceneError
 
 __all__ = ["scene_from_mitsuba_xml", "MitsubaXmlError", "MitsubaXmlWarning", "IOR", "scene_json_text"]
@@ -88,6 +89,11 @@ SAMPLERS = frozenset({"independent", "stratified", "multijitter", "orthogonal", 
 stratification only change the noise, and jaxfog's come from the render's key)."""
 
 REL_TOL = 1e-6
+
+MITSUBA_NEAR_CLIP = 0.01
+"""Mitsuba 3's default `near_clip` of the perspective sensor (scene units): read into the camera's `near_clip`, so
+that the converted scene renders as Mitsuba renders the file (in fog the clip plane leaves out
+`sigma near_clip / cos` of optical depth)."""
 """Relative tolerance of the geometric checks (perpendicular edges, a uniform scale, a rigid camera)."""
 
 
@@ -598,9 +604,12 @@ def _perspective(p: _Plugin) -> _Sensor:
         sp.integer("seed"), sp.boolean("jitter")
         sp.done()
     fov = _x_fov(p, width / height if height else 1.0)
-    if p.number("near_clip", 0.01) > 0.01 or p.number("far_clip", 1e4) < 1e4:
-        raise p.error("near_clip above 0.01 or far_clip below 10000 is not supported: jaxfog's camera has no clip "
-                      "planes (Mitsuba's defaults are accepted)")
+    near_clip = p.number("near_clip", MITSUBA_NEAR_CLIP)
+    if not near_clip >= 0:
+        raise p.error(f"near_clip must be >= 0, got {near_clip}")
+    if p.number("far_clip", 1e4) < 1e4:
+        raise p.error("far_clip below 10000 is not supported: jaxfog's camera has no far clip plane (Mitsuba's "
+                      "default is accepted)")
     for k in ("principal_point_offset_x", "principal_point_offset_y"):
         if p.number(k, 0.0) != 0.0:
             raise p.error(f"{k} is not supported: jaxfog's camera looks through the image centre")
@@ -622,6 +631,8 @@ def _perspective(p: _Plugin) -> _Sensor:
     p.done()
     camera = {"origin": list(origin), "target": list(target), "up": list(up), "fov": fov, "width": width,
               "height": height}
+    if near_clip > NEAR_CLIP:  # at or below the value `to_mitsuba` writes for a camera without one: none
+        camera["near_clip"] = near_clip
     return _Sensor(camera, spp, media[0][1] if media else None, p.el)
 
 

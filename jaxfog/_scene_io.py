@@ -379,6 +379,7 @@ CAMERA = Section(
         "fov": Field(NUMBER, range=FOV_RANGE),
         "width": Field(INTEGER, range=AT_LEAST_1),
         "height": Field(INTEGER, range=AT_LEAST_1),
+        "near_clip": Field(NUMBER, default=0.0, range=NON_NEGATIVE),
     },
     checks=(_up_not_parallel,),
     build=_make("Camera"),

@@ -310,6 +310,7 @@ def test_a_users_scene_with_defaults_refs_and_mitsubas_defaults(tmp_path):
     cam = data["camera"]
     assert (cam["origin"], cam["target"], cam["up"]) == ([0, 1, 5], [0, 1, 0], [0, 1, 0])  # the lookat, verbatim
     assert cam["fov"] == pytest.approx(np.degrees(2 * np.arctan(np.tan(np.radians(15)) * 2)))  # fov_axis y, 2:1
+    assert cam["near_clip"] == 0.01  # Mitsuba's default clip plane, which the converted camera keeps
     assert data["medium"] == {"sigma_t": [0.2, 0.1, 0.4], "albedo": 0.75,  # Mitsuba's default albedo
                               "phase": {"type": "two_term_hg", "g1": 0.7, "g2": 0.0, "w": 0.75}}
     wall, glass, mirror, mesh = data["shapes"]
@@ -528,8 +529,10 @@ REFUSED = {
                                 13, r"<spectrum name=\"intensity\">: a spectrum given by wavelengths"),
     "unknown parameter": ('<shape type="sphere"><bsdf type="dielectric">\n<float name="alpha" value="0.1"/></bsdf>'
                           '</shape>', 14, r"<float name=\"alpha\">: parameter 'alpha' of <bsdf type=\"dielectric\">"),
-    "camera clip plane": ([('<float name="fov" value="40"/>', '<float name="fov" value="40"/><float name="near_clip" '
-                            'value="1"/>')], 3, r"near_clip above 0.01"),
+    "camera far clip plane": ([('<float name="fov" value="40"/>', '<float name="fov" value="40"/><float '
+                                'name="far_clip" value="100"/>')], 3, r"far_clip below 10000"),
+    "negative near clip plane": ([('<float name="fov" value="40"/>', '<float name="fov" value="40"/><float '
+                                   'name="near_clip" value="-1"/>')], 3, r"near_clip must be >= 0"),
     "fov axis": ([('<float name="fov" value="40"/>', '<float name="fov" value="40"/><string name="fov_axis" '
                    'value="z"/>')], 3, r"fov_axis 'z' is not one of"),
     "scaled camera": ([('<lookat origin="0, 1, 4.5" target="0, 0.8, 0" up="0, 1, 0"/>', '<scale value="2"/>')], 3,
@@ -606,6 +609,21 @@ def test_the_base_of_the_refusals_is_accepted(tmp_path):
     data = scene_from_mitsuba_xml(path)
     assert data["integrator"] == {"max_depth": 4} and len(data["shapes"]) == 1 and "medium" not in data
     assert BASE.splitlines()[EXTRA_LINE - 1].strip() == "<!-- EXTRA -->"
+
+
+def test_a_near_clip_plane_is_read_and_written_back(tmp_path):
+    """The sensor's `near_clip` becomes the camera's and `to_mitsuba` writes it back; a camera without one gets the
+    exporter's tiny `NEAR_CLIP`, which reads back as none."""
+    from jaxfog._mitsuba import NEAR_CLIP, to_mitsuba
+
+    path = tmp_path / "clip.xml"
+    path.write_text(BASE.replace('<float name="fov" value="40"/>',
+                                 '<float name="fov" value="40"/><float name="near_clip" value="0.25"/>'))
+    data = scene_from_mitsuba_xml(path)
+    assert data["camera"]["near_clip"] == 0.25
+    assert to_mitsuba(data)["sensor"]["near_clip"] == 0.25
+    del data["camera"]["near_clip"]
+    assert to_mitsuba(data)["sensor"]["near_clip"] == NEAR_CLIP
 
 
 # ------------------------------------------------------------------------------------------ command line

@@ -411,15 +411,19 @@ def test_area_light_seen_directly():
     assert float(np.max(np.asarray(img))) == 0.0
 
 
-def test_area_light_through_absorbing_fog(fog, stats):
-    """Albedo-0 fog: the emitter seen directly is L exp(-sigma_t d) per channel, d = distance to the light."""
+@pytest.mark.parametrize("near_clip", [0.0, 0.7])
+def test_area_light_through_absorbing_fog(fog, stats, near_clip):
+    """Albedo-0 fog: the emitter seen directly is L exp(-sigma_t d) per channel, d = distance to the light; with a
+    near clip plane the ray starts `near_clip / cos` along (cos: its angle to the camera's axis), as Mitsuba's."""
     cam = CameraSpec(origin=(0.0, 0.0, 2.0), target=(0.0, 0.0, 0.0), fov=30.0, width=16, height=12)
     sigma_t = np.array([0.3, 0.5, 0.8])
-    scene = jf.Scene(camera=cam.build(), lights=(jf.AreaLight((0.0, 0.0, 0.0), (3.0, 0.0, 0.0), (0.0, 3.0, 0.0),
-                                                              AREA_L),),
+    camera = jf.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov, width=cam.width,
+                       height=cam.height, near_clip=near_clip)
+    scene = jf.Scene(camera=camera, lights=(jf.AreaLight((0.0, 0.0, 0.0), (3.0, 0.0, 0.0), (0.0, 3.0, 0.0),
+                                                         AREA_L),),
                      medium=fog(sigma_t, 0.0), max_depth=2)
     o, d, w = cam.rays(6)
-    t = -o[2] / d[..., 2]
+    t = -o[2] / d[..., 2] - near_clip / -d[..., 2]  # the axis is -z
     ref = np.einsum("hwkc,k->hwc", AREA_L * np.exp(-sigma_t * t[..., None]), w)
     mean, se = stats.mean_and_se(stats.render_keys(scene, 16, seed=16))
     stats.assert_statistically_equal(mean, se, ref, label="area light through absorbing fog")

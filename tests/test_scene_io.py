@@ -65,7 +65,7 @@ def deleter(path: str):
 # ------------------------------------------------------------------------------------------ one test per bad input
 def test_unknown_key(tmp_path):
     assert_error(tmp_path, setter("camera.fvo", 40), "camera.fvo: unknown key",
-                 "valid keys: origin, target, up, fov, width, height")
+                 "valid keys: origin, target, up, fov, width, height, near_clip")
     assert_error(tmp_path, setter("shapes.1.bsdf.roughness", 0.1), "shapes[1].bsdf.roughness: unknown key",
                  "valid keys: reflectance")
     assert_error(tmp_path, setter("colour", 1), "colour: unknown key", "valid keys: name, description, camera")
@@ -160,6 +160,16 @@ def test_edges_not_perpendicular(tmp_path):
 def test_non_positive_radius(tmp_path, radius):
     assert_error(tmp_path, setter("shapes.1.radius", radius), f"shapes[1].radius: {radius} is out of range",
                  "valid range (0, inf)")
+
+
+@pytest.mark.parametrize("near_clip", [-0.01, float("inf")])
+def test_near_clip_out_of_range(tmp_path, near_clip):
+    assert_error(tmp_path, setter("camera.near_clip", near_clip), "camera.near_clip:", "[0, inf)")
+
+
+def test_camera_near_clip_is_checked_in_python_too():
+    with pytest.raises(ValueError, match="near_clip must be finite and >= 0"):
+        jaxfog.Camera(origin=(0, 0, 0), target=(0, 0, -1), up=(0, 1, 0), fov=40, width=4, height=4, near_clip=-0.1)
 
 
 @pytest.mark.parametrize("fov", [0, 180, 200, -10])
