@@ -52,6 +52,8 @@ class View(NamedTuple):
     """Source pixels not fitted because they hold a point-like light's image (`light_pixels`)."""
     fireflies: tuple = ()
     """`(x, y)` of the source pixels left out as fireflies (`fireflies`): set in `without_fireflies` only."""
+    firefly_share: float = 0.0
+    """The share of the view's light (the channels' sum over its fitted source pixels) in those fireflies."""
     fine_weight: np.ndarray | None = None
     """Float `(H, W)` at the target's resolution, 0 on those source pixels and 1 elsewhere (None: none): a pooled
     pixel is the mean of its other source pixels, in the target and in every pass rendered at the target's
@@ -165,7 +167,10 @@ def make_view(scene: jaxfog.Scene, target: np.ndarray, name: str, downscale: int
     if ff is not None and np.any(ff):
         alt = _pooled_view(*pooled, lit | ff)
         where = tuple((int(x), int(y)) for y, x in zip(*np.nonzero(ff)))
-        view = view._replace(without_fireflies=alt._replace(light_pixels=view.light_pixels, fireflies=where))
+        lum = np.asarray(target, np.float64).sum(axis=-1)
+        share = float(lum[ff].sum() / max(lum[ok & ~lit].sum(), 1e-300))
+        view = view._replace(without_fireflies=alt._replace(light_pixels=view.light_pixels, fireflies=where,
+                                                            firefly_share=share))
     return view
 
 

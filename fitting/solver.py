@@ -513,6 +513,11 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | 
         result.messages.append(f"fitted again without the targets' firefly pixels ({pixels}): failed as well")
         return result
     retry.fireflies = {v.name: [list(p) for p in v.fireflies] for v in alt if v.fireflies}
+    shares = ", ".join(f"{v.name} {100 * v.firefly_share:.2g}%" for v in alt if v.fireflies)
+    retry.messages.append(f"fitted without the targets' firefly pixels, which held this share of their view's light: "
+                          f"{shares}. Such a target's noise has no finite variance (docs/fitting.md, 'Fireflies'): "
+                          f"without them a view is darker than its expectation, and the standard errors do not count "
+                          f"it; a target with more samples per pixel is the remedy")
     retry.rounds += result.rounds
     retry.wall_s += result.wall_s
     return retry

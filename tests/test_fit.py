@@ -112,11 +112,13 @@ def test_a_target_refused_for_one_firefly_is_fitted_without_it(target):
     t[12, 3] += 0.4 / 0.6 * target.sum(axis=(0, 1))
     view = make_view(_scene(), t, "tiny", downscale=2)
     assert view.without_fireflies.fireflies == ((3, 12),)
+    assert view.without_fireflies.firefly_share == pytest.approx(t[12, 3].sum() / t.sum(), rel=1e-5)  # about 40%
     cfg, init = FitConfig(spp=32, seed=0), {"sigma_t": 0.3, "g": 0.2}
     as_is = fit_views([view._replace(without_fireflies=None)], ["sigma_t", "g"], init, cfg, log=lambda *_: None)
     assert not as_is.success and any("does not explain" in m for m in as_is.messages), as_is.messages
     res = fit_views([view], ["sigma_t", "g"], init, cfg, log=lambda *_: None)
     assert res.success and res.fireflies == {"tiny": [[3, 12]]}, res.messages
+    assert any("tiny 40%" in m and "no finite variance" in m for m in res.messages), res.messages
     assert res_ok(res)
 
 
