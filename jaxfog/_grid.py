@@ -31,7 +31,9 @@ transmittance the weights need is estimated by residual ratio tracking against i
 value as control, Poisson points at the rate of the difference; Novak et al. 2014), unbiased, with a cost that
 follows the difference's optical depth instead of the grid's resolution. The points are drawn from a hash of the
 ray (`ray_seed`), so a fixed key still gives an image that is a smooth function of the voxel values. Its loop is a
-`lax.while_loop`: forward-mode derivatives (`jax.jvp`, `jacfwd`) only; reverse mode needs `tracking="exact"`.
+`lax.while_loop`: forward-mode derivatives (`jax.jvp`, `jacfwd`) through it; reverse mode only in path replay
+(`max_depth = -1`), which draws each segment's points again (`_replayed_product`); with a fixed `max_depth`,
+reverse mode raises `RATIO_REVERSE_MESSAGE`.
 `docs/results/grid.md` measures the two against each other: time per sample and variance.
 
 RGB grids (three channels of extinction) use one-sample spectral MIS over the channels: channel `c`'s technique
@@ -42,9 +44,11 @@ channel in proportion to `q_c` (a channel without fog on the segment has `q_c = 
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -60,6 +64,7 @@ from ._medium import (
     check_bounds,
     check_phase_and_extent,
     inside_box,
+    replaying,
     shared,
 )
 from ._phase import AbstractPhaseFunction, HenyeyGreenstein
@@ -406,8 +411,14 @@ def ratio_tracking(cp: CoarseProfile, scale_hat, scale, sigma_at, t_end, seed) -
     `sigma_at(t)` (C,) is the medium's extinction at distance `t` (differentiable: the voxel and scale derivatives
     come from the factors); the control's depth carries `scale`'s derivative with zero variance. Each factor is in
     [0, 1] while `scale = scale_hat`. Returns `(tau_control (C,) or scalar, product (C,))`: the transmittance is
-    `exp(-tau_control) * product`, kept apart so that callers divide by a pdf without underflow. A
-    `lax.while_loop`: forward-mode derivatives only (docs/estimators.md)."""
+    `exp(-tau_control) * product`, kept apart so that callers divide by a pdf without underflow.
+
+    Derivatives: the points do not move with the parameters, so `d prod = sum_i (prod_{j != i} f_j) d f_i`. Forward
+    mode differentiates the `lax.while_loop`; reverse mode, which JAX has not for such a loop, is traced only in
+    path replay (`_medium.path_replay`), where `_replayed_product` draws the same points again and pulls the
+    cotangent through each factor: memory independent of the number of points, but one cotangent of the grid's
+    size per lane of the replay (docs/results/grid.md, "Reverse mode and memory"). Elsewhere reverse mode raises
+    `RATIO_REVERSE_MESSAGE`."""
     rho = scale_hat * (cp.major - cp.control)
     cum = scale_hat * (cp.cum_major - cp.cum_control)
     r_end = piecewise_depth(cp.start, cp.length, rho, t_end)
@@ -433,10 +444,101 @@ def ratio_tracking(cp: CoarseProfile, scale_hat, scale, sigma_at, t_end, seed) -
         f = jax.vmap(factor)(rs[:-1])  # (P, C)
         return rs[-1], i + TRACKING_BATCH, prod * jnp.prod(f, axis=0)
 
+    if replaying():  # reverse mode's trace (`_medium.path_replay`): the loop with its own replay
+        sg = jax.lax.stop_gradient
+        control = sg(cp.control)
+        geo = tuple(sg(x) for x in (cp.start, cp.length, rho, cum, r_end)) + (seed,)
+        ex_fn, consts = jax.closure_convert(lambda t, k, s: sigma_at(t) - s * control[k], jnp.float32(0.0),
+                                            jnp.int32(0), jnp.asarray(scale, jnp.float32))
+        return tau_c, _replayed_product(ex_fn, geo, jnp.asarray(scale, jnp.float32), *consts)
     c = jax.eval_shape(sigma_at, jnp.float32(0.0)).shape[0]
     init = (exp_step(jnp.uint32(0)), jnp.uint32(0), jnp.ones((c,), jnp.float32))
     _, _, prod = jax.lax.while_loop(cond, body, init)
-    return tau_c, prod
+    return tau_c, eqxi.nondifferentiable_backward(prod, msg=RATIO_REVERSE_MESSAGE)
+
+
+RATIO_REVERSE_MESSAGE = (
+    'reverse mode (jax.grad, jax.vjp) through a grid with tracking="ratio" needs paths of any length '
+    '(integrator max_depth = -1), whose path replay draws the ratio-tracking points again; with a fixed max_depth '
+    'use forward mode (jax.jvp, jax.jacfwd) or tracking="exact"')
+
+
+def _track_pass(ex_fn, geo, r, i, scale, consts):
+    """One pass of `ratio_tracking`'s loop from residual depth `r` (its `i`-th exponential step on): `(the next
+    depth, the factors (P, C) of its TRACKING_BATCH points)`, as the loop draws them."""
+    start, length, rho, cum, r_end, seed = geo
+    steps = jax.vmap(lambda j: -jnp.log1p(-seeded_uniform(seed, j)))(
+        i + jnp.arange(1, TRACKING_BATCH + 1, dtype=jnp.uint32))
+    rs = r + jnp.concatenate([jnp.zeros((1,), jnp.float32), jnp.cumsum(steps)])
+
+    def factors(s, *c):
+        def one(rr):
+            t, k = piecewise_inverse(start, length, rho, cum, rr)
+            rk = rho[k]
+            ok = (rk > 0) & (rr < r_end)
+            return jnp.where(ok, 1.0 - ex_fn(t, k, s, *c) / jnp.where(ok, rk, 1.0), 1.0)
+
+        return jax.vmap(one)(rs[:-1])
+
+    return rs[-1], factors, factors(scale, *consts)
+
+
+def _replay_loop(ex_fn, geo, scale, consts, body, init):
+    """Run `body(carry, factors_fn, f, i, r)` over `ratio_tracking`'s passes (the same points as its loop)."""
+    seed = geo[5]
+
+    def step(carry):
+        r, i, acc = carry
+        r_next, fn, f = _track_pass(ex_fn, geo, r, i, scale, consts)
+        return r_next, i + TRACKING_BATCH, body(acc, fn, f)
+
+    r0 = -jnp.log1p(-seeded_uniform(seed, jnp.uint32(0)))
+    return jax.lax.while_loop(lambda carry: carry[0] < geo[4], step, (r0, jnp.uint32(0), init))[2]
+
+
+def _product_and_zeros(ex_fn, geo, scale, consts):
+    """Per channel: the product of the nonzero factors and the number of zero ones."""
+    c = jax.eval_shape(lambda: ex_fn(jnp.float32(0.0), jnp.int32(0), scale, *consts)).shape[0]
+
+    def body(acc, _, f):
+        zero = f == 0.0
+        return acc[0] * jnp.prod(jnp.where(zero, 1.0, f), axis=0), acc[1] + jnp.sum(zero, axis=0, dtype=jnp.int32)
+
+    return _replay_loop(ex_fn, geo, scale, consts, body, (jnp.ones((c,), jnp.float32), jnp.zeros((c,), jnp.int32)))
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _replayed_product(ex_fn, geo, scale, *consts):
+    """`ratio_tracking`'s product, for reverse mode: its loop forward, and backward the same points drawn again
+    (`_replayed_product_bwd`), with memory independent of their number."""
+    prod, zeros = _product_and_zeros(ex_fn, geo, scale, consts)
+    return jnp.where(zeros > 0, 0.0, prod)
+
+
+def _replayed_product_fwd(ex_fn, geo, scale, *consts):
+    prod, zeros = _product_and_zeros(ex_fn, geo, scale, consts)
+    return jnp.where(zeros > 0, 0.0, prod), (geo, scale, consts, prod, zeros)
+
+
+def _replayed_product_bwd(ex_fn, res, ct):
+    """`d prod = sum_i (prod_{j != i} f_j) d f_i`; the others' product is `prod / f_i` where no factor is 0, the
+    nonzero factors' product for the one zero factor, and 0 beside two zeros (per channel)."""
+    geo, scale, consts, prod, zeros = res
+
+    def body(g, fn, f):
+        zero = f == 0.0
+        p, z = prod[None, :], zeros[None, :]
+        others = jnp.where(z == 0, p / jnp.where(zero, 1.0, f), jnp.where((z == 1) & zero, p, 0.0))
+        _, pull = jax.vjp(fn, scale, *consts)
+        return jax.tree.map(jnp.add, g, pull(ct[None, :] * others))
+
+    g = _replay_loop(ex_fn, geo, scale, consts, body, jax.tree.map(jnp.zeros_like, (scale, *consts)))
+    no_ct = tuple(np.zeros(np.shape(x), jax.dtypes.float0) if not jnp.issubdtype(jnp.result_type(x), jnp.floating)
+                  else jnp.zeros_like(x) for x in geo)
+    return (no_ct, *g)
+
+
+_replayed_product.defvjp(_replayed_product_fwd, _replayed_product_bwd)
 
 
 # -------------------------------------------------------------------------------------------------- the medium

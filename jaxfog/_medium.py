@@ -75,6 +75,26 @@ def shared_ray_values():
         _SHARED.reset(token)
 
 
+_REPLAY: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxfog_path_replay", default=False)
+
+
+@contextlib.contextmanager
+def path_replay():
+    """Within this block (the replay's trace of a bounce in reverse mode, `_unbounded._replay`), a medium whose
+    estimate runs an unbounded loop (`_grid.ratio_tracking`) traces the loop's own reverse mode (drawing the same
+    points again) instead of the plain loop, which only forward mode differentiates. A trace-time switch."""
+    token = _REPLAY.set(True)
+    try:
+        yield
+    finally:
+        _REPLAY.reset(token)
+
+
+def replaying() -> bool:
+    """True inside `path_replay`."""
+    return _REPLAY.get()
+
+
 def shared(fn: Callable, *args):
     """`fn(*args)`, computed once per `shared_ray_values` block for the same `fn` and the same argument objects;
     outside a block, computed at every call."""

@@ -41,6 +41,7 @@ from jaxtyping import Array
 
 from ._integrator import (SamplingOptions, Uniforms, bounce, computed_once, make_tracer, n_dims, russian_roulette,
                           start_path)
+from ._medium import path_replay
 from ._random import hashed_uniforms
 from ._scene import Scene, pack
 
@@ -175,7 +176,8 @@ def _replay(scene, words, chunk_ids, valid, proposal, L_path, ct, th_mask, *, op
         def lanes(th_):
             sc = eqx.combine(th_, rest)
             tr = make_tracer(sc, pack(sc), options, proposal)
-            new_ = _lanes(tr, state, b, U)
+            with path_replay():  # a grid's ratio tracking: its own replay (`_grid.ratio_tracking`)
+                new_ = _lanes(tr, state, b, U)
             return (new_.L - state.L, new_.beta), new_
 
         _, pull, new = jax.vjp(lanes, th, has_aux=True)

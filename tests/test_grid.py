@@ -329,15 +329,18 @@ def test_voxel_gradients_of_a_render_match_finite_differences():
         assert g[idx] == pytest.approx(fd, rel=0.02, abs=2e-6), idx
 
 
-def test_reverse_mode_over_every_voxel_replays_the_paths_and_equals_forward_mode():
+@pytest.mark.parametrize("tracking", ["exact", "ratio"])
+def test_reverse_mode_over_every_voxel_replays_the_paths_and_equals_forward_mode(tracking):
     """With paths of any length (`max_depth = -1`), `jax.grad` over all 27 voxels of a 3^3 grid runs path replay
     (memory independent of the path length); it must equal `jax.jacfwd` of the same render (the loop's own
-    tangents, same key) to float32 rounding of sums over 576 paths: 1e-5 of the largest entry."""
+    tangents, same key) to float32 rounding of sums over 576 paths: 1e-5 of the largest entry. With ratio tracking
+    (one majorant cell: many tracking points per segment) the replay also draws each segment's points again."""
     scene = jf.load_scene(REPO / "data_synthetic" / "scenes" / "spot_fog.json",
                           ["camera.width=6", "camera.height=6", "integrator.max_depth=-1"]).scene
     box = ((-2.0, -0.5, -2.0), (2.0, 2.5, 1.5))
     D0 = jnp.asarray(_grid(shape=(3, 3, 3, 1), seed=21, lo=0.2, hi=1.0))
-    scene = eqx.tree_at(lambda s: s.medium, scene, GridMedium(D0, 1.0, 0.9, scene.medium.phase, bounds=box))
+    scene = eqx.tree_at(lambda s: s.medium, scene, GridMedium(D0, 1.0, 0.9, scene.medium.phase, bounds=box,
+                                                              tracking=tracking, majorant_cells=1))
 
     def f(D):
         return jf.render(eqx.tree_at(lambda s: s.medium.density, scene, D), jax.random.key(3), 16).mean()
@@ -345,6 +348,23 @@ def test_reverse_mode_over_every_voxel_replays_the_paths_and_equals_forward_mode
     rev, fwd = np.asarray(jax.jit(jax.grad(f))(D0)), np.asarray(jax.jit(jax.jacfwd(f))(D0))
     assert np.max(np.abs(fwd)) > 0
     np.testing.assert_allclose(rev, fwd, rtol=0, atol=1e-5 * np.max(np.abs(fwd)))
+
+
+def test_reverse_mode_through_ratio_tracking_at_a_fixed_depth_says_what_works():
+    """A fixed max_depth has no path replay: `jax.grad` through ratio tracking raises the renderer's message (paths
+    of any length, forward mode, or exact profiles), not JAX's loop error; forward mode works."""
+    scene = jf.load_scene(REPO / "data_synthetic" / "scenes" / "spot_fog.json",
+                          ["camera.width=4", "camera.height=4", "integrator.max_depth=2"]).scene
+    D0 = jnp.asarray(_grid(shape=(3, 3, 3, 1), seed=21, lo=0.2, hi=1.0))
+    scene = eqx.tree_at(lambda s: s.medium, scene, GridMedium(D0, 1.0, 0.9, scene.medium.phase, tracking="ratio",
+                                                              bounds=((-2.0, -0.5, -2.0), (2.0, 2.5, 1.5))))
+
+    def f(D):
+        return jf.render(eqx.tree_at(lambda s: s.medium.density, scene, D), jax.random.key(3), 4).mean()
+
+    assert np.max(np.abs(np.asarray(jax.jacfwd(f)(D0)))) > 0
+    with pytest.raises(Exception, match=r'tracking="ratio" needs paths of any length \(integrator max_depth = -1\)'):
+        jax.grad(f)(D0)
 
 
 @pytest.mark.slow  # Mitsuba 3 at 4 x 4096 spp and jaxfog at 512 spp: a few minutes on 2 cores

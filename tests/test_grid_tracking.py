@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 import jaxfog as jf
-from jaxfog._grid import (GridMedium, block_bounds, coarse_profile, piecewise_depth, piecewise_inverse,
-                          ray_seed)
-from jaxfog._medium import box_interval
+from jaxfog._grid import (CoarseProfile, GridMedium, block_bounds, coarse_profile, piecewise_depth,
+                          piecewise_inverse, ratio_tracking, ray_seed, seeded_uniform)
+from jaxfog._medium import box_interval, path_replay
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -146,6 +146,37 @@ def test_ratio_tracking_scale_derivative_is_unbiased_in_forward_mode():
     tau = float(exact.optical_depth(jnp.asarray(LINE_O), d, jnp.float32(t))[0])
     want = -tau / 0.7 * math.exp(-tau)
     assert abs(dv.mean() - want) < 4 * dv.std(ddof=1) / math.sqrt(len(dv)), (dv.mean(), want)
+
+
+@pytest.mark.parametrize("zeros", [0, 1, 2])
+def test_ratio_tracking_reverse_mode_replays_its_points_and_equals_forward_mode(zeros):
+    """`ratio_tracking` on one interval of rate 1 (20 points or so), its extinction `a + b t` with `zeros` factors
+    exactly 0 (the extinction equals the majorant at the first `zeros` points, where `bump` adds it): the reverse
+    mode that path replay traces (`_medium.path_replay`, the points drawn again) equals forward mode through the
+    plain loop in `a`, `b` and `scale`, to float32 rounding, also where a zero factor makes the product 0."""
+    seed = jnp.uint32(12345)
+    cp = CoarseProfile(start=jnp.array([0.0]), length=jnp.array([20.0]), major=jnp.array([1.0]),
+                       control=jnp.array([0.0]), cum_major=jnp.array([0.0]), cum_control=jnp.array([0.0]))
+    depths = np.cumsum([-np.log1p(-float(seeded_uniform(seed, jnp.uint32(i)))) for i in range(3)])
+    bumped = depths[:zeros]  # the points (distance = depth at rate 1) where a factor is exactly 0
+
+    def estimate(a, b, scale):
+        def sigma_at(t):
+            at_point = jnp.any(jnp.abs(t - jnp.asarray(bumped, jnp.float32)) < 1e-6) if zeros else False
+            v = scale * (a + b * t)  # at a bumped point: exactly 1, with v's derivative
+            return jnp.reshape(jnp.where(at_point, 1.0 + (v - jax.lax.stop_gradient(v)), v), (1,))
+
+        return ratio_tracking(cp, 1.0, scale, sigma_at, jnp.float32(20.0), seed)[1][0]
+
+    x = (jnp.float32(0.02), jnp.float32(0.01), jnp.float32(1.0))
+    fwd = np.array(jax.jacfwd(estimate, argnums=(0, 1, 2))(*x))
+    with path_replay():
+        rev = np.array(jax.grad(estimate, argnums=(0, 1, 2))(*x))
+        value = float(estimate(*x))
+    assert value == pytest.approx(float(estimate(*x)), abs=0)  # the replayed loop computes the same product
+    assert (value == 0.0) == (zeros > 0)
+    assert (np.max(np.abs(fwd)) > 0) == (zeros < 2)  # two zero factors: no derivative either
+    np.testing.assert_allclose(rev, fwd, rtol=1e-5, atol=1e-7)
 
 
 def test_a_ray_seed_differs_between_rays_and_repeats_for_the_same_ray():
