@@ -20,6 +20,13 @@ CPU)."""
 
 _OFF = {"", "0", "off", "none", "false", "no"}
 
+CACHE_MAX_BYTES = 4 << 30
+"""The compilation cache's size limit (4 GiB; JAX evicts the least recently used entries above it). Any limit makes
+JAX lock the cache directory (`filelock`) around each read and write; without one it writes entries in place, and a
+process that reads an entry another process is still writing hands XLA a truncated executable: a segmentation fault
+in `compilation_cache.get_executable_and_time`, seen once when a fit ran beside the test suite (2026-12-05). The
+shipped runs fill about 100 MB."""
+
 
 def cache_dir() -> str | None:
     """The persistent cache directory the entry points use, or None when `JAXFOG_CACHE_DIR` disables it."""
@@ -47,6 +54,8 @@ def use_compilation_cache(path: str | None = None) -> str | None:
                       stacklevel=2)
         return None
     jax.config.update("jax_compilation_cache_dir", path)
+    if jax.config.jax_compilation_cache_max_size == -1:  # unbounded (JAX's default): reads and writes are unlocked
+        jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_S)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path

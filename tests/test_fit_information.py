@@ -94,3 +94,24 @@ def test_compilation_cache_dir(monkeypatch, tmp_path):
     monkeypatch.delenv("JAXFOG_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     assert cache_dir() == str(tmp_path / "jaxfog" / "xla")
+
+
+def test_the_compilation_cache_is_locked_for_processes_that_share_it(tmp_path):
+    """`use_compilation_cache` gives JAX's cache a size limit, which makes JAX lock the directory around each read and
+    write (`filelock`): without one a process could read an entry another is still writing (a segfault in XLA).
+    A limit the caller set stays; the caller's settings are restored afterwards."""
+    import jax
+
+    from jaxfog._cache import CACHE_MAX_BYTES, use_compilation_cache
+
+    keep = (jax.config.jax_compilation_cache_dir, jax.config.jax_compilation_cache_max_size)
+    try:
+        jax.config.update("jax_compilation_cache_max_size", -1)
+        assert use_compilation_cache(str(tmp_path / "a")) == str(tmp_path / "a")
+        assert jax.config.jax_compilation_cache_max_size == CACHE_MAX_BYTES
+        jax.config.update("jax_compilation_cache_max_size", 123 << 20)
+        use_compilation_cache(str(tmp_path / "b"))
+        assert jax.config.jax_compilation_cache_max_size == 123 << 20
+    finally:
+        jax.config.update("jax_compilation_cache_dir", keep[0])
+        jax.config.update("jax_compilation_cache_max_size", keep[1])
