@@ -463,9 +463,9 @@ RATIO_REVERSE_MESSAGE = (
     'use forward mode (jax.jvp, jax.jacfwd) or tracking="exact"')
 
 
-def _track_pass(ex_fn, geo, r, i, scale, consts):
+def _track_pass(ex_fn, geo, r, i):
     """One pass of `ratio_tracking`'s loop from residual depth `r` (its `i`-th exponential step on): `(the next
-    depth, the factors (P, C) of its TRACKING_BATCH points)`, as the loop draws them."""
+    depth, the function (scale, *consts) -> factors (P, C) of its TRACKING_BATCH points)`, as the loop draws them."""
     start, length, rho, cum, r_end, seed = geo
     steps = jax.vmap(lambda j: -jnp.log1p(-seeded_uniform(seed, j)))(
         i + jnp.arange(1, TRACKING_BATCH + 1, dtype=jnp.uint32))
@@ -480,17 +480,17 @@ def _track_pass(ex_fn, geo, r, i, scale, consts):
 
         return jax.vmap(one)(rs[:-1])
 
-    return rs[-1], factors, factors(scale, *consts)
+    return rs[-1], factors
 
 
 def _replay_loop(ex_fn, geo, scale, consts, body, init):
-    """Run `body(carry, factors_fn, f, i, r)` over `ratio_tracking`'s passes (the same points as its loop)."""
+    """Run `acc = body(acc, factors_fn)` over `ratio_tracking`'s passes (the same points as its loop)."""
     seed = geo[5]
 
     def step(carry):
         r, i, acc = carry
-        r_next, fn, f = _track_pass(ex_fn, geo, r, i, scale, consts)
-        return r_next, i + TRACKING_BATCH, body(acc, fn, f)
+        r_next, fn = _track_pass(ex_fn, geo, r, i)
+        return r_next, i + TRACKING_BATCH, body(acc, fn)
 
     r0 = -jnp.log1p(-seeded_uniform(seed, jnp.uint32(0)))
     return jax.lax.while_loop(lambda carry: carry[0] < geo[4], step, (r0, jnp.uint32(0), init))[2]
@@ -500,7 +500,8 @@ def _product_and_zeros(ex_fn, geo, scale, consts):
     """Per channel: the product of the nonzero factors and the number of zero ones."""
     c = jax.eval_shape(lambda: ex_fn(jnp.float32(0.0), jnp.int32(0), scale, *consts)).shape[0]
 
-    def body(acc, _, f):
+    def body(acc, fn):
+        f = fn(scale, *consts)
         zero = f == 0.0
         return acc[0] * jnp.prod(jnp.where(zero, 1.0, f), axis=0), acc[1] + jnp.sum(zero, axis=0, dtype=jnp.int32)
 
@@ -525,11 +526,11 @@ def _replayed_product_bwd(ex_fn, res, ct):
     nonzero factors' product for the one zero factor, and 0 beside two zeros (per channel)."""
     geo, scale, consts, prod, zeros = res
 
-    def body(g, fn, f):
+    def body(g, fn):
+        f, pull = jax.vjp(fn, scale, *consts)
         zero = f == 0.0
         p, z = prod[None, :], zeros[None, :]
         others = jnp.where(z == 0, p / jnp.where(zero, 1.0, f), jnp.where((z == 1) & zero, p, 0.0))
-        _, pull = jax.vjp(fn, scale, *consts)
         return jax.tree.map(jnp.add, g, pull(ct[None, :] * others))
 
     g = _replay_loop(ex_fn, geo, scale, consts, body, jax.tree.map(jnp.zeros_like, (scale, *consts)))
