@@ -566,9 +566,7 @@ def load_candidates(paths, downscale: int | None) -> list[tuple[str, object, int
         cam = sf.scene.camera
         f = downscale if downscale and cam.width % downscale == 0 and cam.height % downscale == 0 else \
             auto_downscale(cam.width, cam.height)
-        small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov,
-                              near_clip=cam.near_clip,
-                              width=cam.width // f, height=cam.height // f)
+        small = cam.resized(cam.width // f, cam.height // f)
         out.append((os.path.basename(p), eqx.tree_at(lambda s: s.camera, sf.scene, small), f))
     return out
 

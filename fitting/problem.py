@@ -204,8 +204,7 @@ def _pooled_view(scene, target, name, downscale, target_spp, valid, ok, noise_fl
         raise FitError(f"{name}: target is black (every pixel 0): nothing to fit; a target rendered with the light "
                        f"off, or the wrong file?")
     cam = scene.camera
-    small = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov, near_clip=cam.near_clip,
-                          width=cam.width // downscale, height=cam.height // downscale)
+    small = cam.resized(cam.width // downscale, cam.height // downscale)
     scene = eqx.tree_at(lambda s: s.camera, scene, small)
     w = (~lit).astype(np.float64)[:, :, None]
     if noise is None:
@@ -310,8 +309,7 @@ def _fine_scene(scene: jaxfog.Scene, f: int) -> jaxfog.Scene:
     if f == 1:
         return scene
     c = scene.camera
-    cam = jaxfog.Camera(origin=c.origin, target=c.target, up=c.up, fov=c.fov, width=c.width * f, height=c.height * f,
-                        near_clip=c.near_clip)
+    cam = c.resized(c.width * f, c.height * f)
     return eqx.tree_at(lambda s: s.camera, scene, cam)
 
 

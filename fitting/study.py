@@ -81,13 +81,10 @@ def draw_start(names, scene_values: dict, L: float, rng) -> dict:
 def _small(scene, side: int):
     import equinox as eqx
 
-    import jaxfog
-
     cam = scene.camera
     if cam.width <= side and cam.height <= side:
         return scene
-    cam = jaxfog.Camera(origin=cam.origin, target=cam.target, up=cam.up, fov=cam.fov, near_clip=cam.near_clip,
-                        width=side, height=side * cam.height // cam.width)
+    cam = cam.resized(side, side * cam.height // cam.width)
     return eqx.tree_at(lambda s: s.camera, scene, cam)
 
 

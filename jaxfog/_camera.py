@@ -58,6 +58,11 @@ class Camera(eqx.Module):
                 raise ValueError(f"Camera.up = {up.tolist()} is parallel to the view direction target - origin = "
                                  f"{view.tolist()}; expected an up vector not parallel to it")
 
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same camera (pose, field of view, clip plane) at another resolution."""
+        return Camera(origin=self.origin, target=self.target, up=self.up, fov=self.fov, width=width, height=height,
+                      near_clip=self.near_clip)
+
     def film_position(self, point: Float[Array, "3"]) -> tuple[Float[Array, "2"], Float[Array, ""]]:
         """The inverse of `generate_ray`: the film position `(x, y)` in pixels at which `point` (scene units) is
         seen, and whether it lies in front of the camera (the position is meaningless where it does not)."""
