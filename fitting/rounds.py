@@ -128,6 +128,17 @@ def model_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, var: np.nd
     return A_inv @ (S.T @ S) @ A_inv
 
 
+def brightness_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, B: np.ndarray | None) -> np.ndarray:
+    """The covariance of a weighted least-squares step from independent unit-variance noises that move the residual
+    by the columns of `B` (`(n, V)`: each a view's brightness by its heavy tail's spread,
+    `fitting.problem.Problem.brightness_noise`): `A^-1 (J^T W B) (J^T W B)^T A^-1`; zeros where `B` is None."""
+    k = J.shape[1]
+    if B is None:
+        return np.zeros((k, k))
+    S = A_inv @ (J.T @ ((w * w)[:, None] * B))
+    return S @ S.T
+
+
 def robust_covariance(A_inv: np.ndarray, J: np.ndarray, w: np.ndarray, r: np.ndarray, pixel_of: np.ndarray,
                       leverage: bool = False) -> np.ndarray:
     """The step's covariance from its own residuals `r` (the cluster-robust sandwich: a pixel's three channels share
@@ -184,12 +195,13 @@ def floored(cov: np.ndarray, floor: np.ndarray) -> np.ndarray:
 
 
 def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixel_of: np.ndarray,
-                 quality_min: float = QUALITY_MIN) -> Step | None:
+                 quality_min: float = QUALITY_MIN, brightness: np.ndarray | None = None) -> Step | None:
     """One Gauss-Newton step from two independent halves: `delta = -A^-1 (Ja^T W eb + Jb^T W ea) / 2`,
     `A = sym(Ja^T W Jb)`. No Jacobian multiplies the residual from its own samples (a Jacobian and a residual from
     the same paths are correlated, which biases the fixed point), and `A` carries no `Var[J]`. Where the Jacobians'
     noise is too large for `A` (`Step.quality` below `quality_min`), the halves' own normal matrix instead. None
-    where that is singular too (a parameter without effect on the images)."""
+    where that is singular too (a parameter without effect on the images). `brightness`: the views' uncertain
+    brightness from a heavy-tailed target (`brightness_covariance`), part of the target's noise model."""
     g, A2, A1 = normal_equations(pa, pb, w)
     quality, A_cov = _information(A2, A1, quality_min)
     A = A2 if quality >= quality_min else A1
@@ -202,7 +214,7 @@ def gauss_newton(pa: Pass, pb: Pass, w: np.ndarray, var_target: np.ndarray, pixe
     var_render = 0.5 * (pa.u + pb.u) / (pa.spp + pb.spp)
     robust = robust_covariance(A_inv, J, w, r, pixel_of, leverage=True)
     cov_r = model_covariance(A_inv, J, w, var_render, pixel_of)
-    cov_t = model_covariance(A_inv, J, w, var_target, pixel_of)
+    cov_t = model_covariance(A_inv, J, w, var_target, pixel_of) + brightness_covariance(A_inv, J, w, brightness)
     nu = effective_pixels(A_inv, J, w, var_render + var_target, pixel_of)
     return Step(delta, A, reported_covariance(robust, cov_r, cov_t, nu), cov_r, cov_t, r, J, var_render, quality,
                 robust, nu)

@@ -30,7 +30,7 @@ import numpy as np
 
 from .information import fisher_report, instead, relative_scales
 from .params import SPECS, FitError, jacobian_to_params, to_unconstrained
-from .problem import LIGHT_MARGIN, Pass, Problem, View, stratified
+from .problem import LIGHT_MARGIN, TAIL_FACTOR, Pass, Problem, View, stratified
 from .rounds import (QUALITY_MIN, Check, Step, chi2_quantile, damped_step, gauss_newton, mahalanobis, model_check,
                      trust_region, two_key_loss, weights)
 from .search import Scan, check_brightness, distinct_starts, global_search
@@ -157,6 +157,10 @@ class FitResult:
     fireflies: dict = field(default_factory=dict)
     """Per view, the `(x, y)` source pixels left out as fireflies (`fit_views`): empty unless the model check refused
     the targets with them and the fit succeeded without them."""
+    tails: dict = field(default_factory=dict)
+    """Per view whose target's noise comes from its own pixels and has a heavy tail (`fitting.problem.tail_spread`):
+    its tail pixels, the typical shortfall the target was raised by, and the uncertainty of the view's brightness
+    they leave (both relative)."""
     images: list | None = None
     """Per view, the render at the estimate at the fit resolution (linear radiance; the estimate's passes moved to the
     estimate by their Jacobian): for figures, not written to JSON."""
@@ -335,13 +339,14 @@ def estimate_round(problem: Problem, state: FitState, cfg: FitConfig, log) -> Fi
     passes = state.passes + (halves,)
     pa, pb = _combine([p[0] for p in passes]), _combine([p[1] for p in passes])
     u = 0.5 * (pa.u + pb.u)
-    step = gauss_newton(pa, pb, state.w, problem.target_variance(u), problem.pixel_of)
+    B = problem.brightness_noise()
+    step = gauss_newton(pa, pb, state.w, problem.target_variance(u), problem.pixel_of, brightness=B)
     if step is None:
         raise FitError(f"the images do not change with the fitted parameters at {_values(problem.names, state.y)}: "
                        f"nothing to fit")
     if any(v.noise_from_image for v in problem.views):  # the target's noise from the residual at the estimate
         step = gauss_newton(pa, pb, state.w, problem.target_variance(u, step.r, step.var_render),
-                            problem.pixel_of) or step
+                            problem.pixel_of, brightness=B) or step
     length = mahalanobis(step.delta, step.cov)
     y_hat = state.y + step.delta
     rel = _relative_se(problem.names, y_hat, step.cov)
@@ -497,11 +502,10 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | 
     for v in views:
         if v.scene.medium is None and set(names) - {"intensity"}:
             raise FitError(f"{v.name}: the scene has no medium to fit")
-    for v in views:
-        if v.light_pixels:
-            log(f"{v.name}: {v.light_pixels} px within {LIGHT_MARGIN:g} px of a point-like light's image are not fitted "
-                f"(their radiance has no finite variance)")
+    _log_views(views, log)
     result = _solve(Problem(views, names), init, cfg, log)
+    result.tails = {v.name: {"pixels": v.tail_pixels, "raised_by": v.tail_deficit, "brightness_se": v.tail_spread}
+                    for v in views if v.tail_pixels}
     if not _refused(result, cfg) or not any(v.without_fireflies for v in views):
         return result
     alt = [v.without_fireflies or v for v in views]
@@ -518,9 +522,23 @@ def fit_views(views: list[View], names: list[str], init: dict, cfg: FitConfig | 
                           f"{shares}. Such a target's noise has no finite variance (docs/fitting.md, 'Fireflies'): "
                           f"without them a view is darker than its expectation, and the standard errors do not count "
                           f"it; a target with more samples per pixel is the remedy")
+    retry.tails = result.tails
     retry.rounds += result.rounds
     retry.wall_s += result.wall_s
     return retry
+
+
+def _log_views(views: list[View], log: Callable) -> None:
+    """What the fit leaves out of or changes in each target before it starts."""
+    for v in views:
+        if v.light_pixels:
+            log(f"{v.name}: {v.light_pixels} px within {LIGHT_MARGIN:g} px of a point-like light's image are not fitted "
+                f"(their radiance has no finite variance)")
+        if v.tail_pixels:
+            log(f"{v.name}: the target's noise has a heavy tail ({v.tail_pixels} px above {TAIL_FACTOR:g}x their "
+                f"brightest neighbour): raised by its typical shortfall, {100 * v.tail_deficit:.2g}%, and its "
+                f"brightness uncertain by {100 * v.tail_spread:.2g}%, which the standard errors include "
+                f"(docs/fitting.md, 'Fireflies')")
 
 
 def _refused(result: FitResult, cfg: FitConfig) -> bool:
