@@ -6,7 +6,9 @@ is one draw (the suite and the coverage study keep one target per case and vary 
 
 Needs the `compare` extra (Mitsuba 3). Per case and seed it renders the case's views at the truth with Mitsuba's
 `volpath` (`scalar_rgb`, the manifest's spp unless `--spp`; seed `10 * seed + view`) into `OUT/CASE/SEED/`, runs the
-suite's `python -m fitting.fit` command on them (`fitting.suite.run_case`, the fit's defaults), and appends one line
+suite's `python -m fitting.fit` command on them (`fitting.suite.run_case`, the fit's defaults but `--seed SEED`: a
+fit's renders share their noise wherever its seed does, so one fit seed for every target would move a case's fits
+together by one draw of the renders' noise), and appends one line
 to `OUT/fits.jsonl`. Targets and fits already in OUT are kept (a run can be resumed). Prints, per case and parameter,
 the mean error, the standard deviation of the errors over the targets, the mean reported standard error, the mean
 and rms of error / se and the share within 1 and 2 se; writes them to `OUT/summary.json`. `--average` fits also
@@ -69,13 +71,14 @@ def average_targets(case: dict, folders: list[Path], out: Path) -> list[str]:
     return paths
 
 
-def fit(case: dict, targets: list[str], folder: Path) -> dict:
-    """The suite's run of one case (`fitting.suite.run_case`: its fit command, in its own process) on `targets`;
-    one row: exit code, wall, verdict and per parameter error, se, error / se."""
+def fit(case: dict, targets: list[str], folder: Path, seed: int | None = None) -> dict:
+    """The suite's run of one case (`fitting.suite.run_case`: its fit command, in its own process) on `targets`,
+    with the fit's `--seed` (None: its default); one row: exit code, wall, verdict and per parameter error, se,
+    error / se."""
     c = copy.deepcopy(case)
     for view, path in zip(c["views"], targets):
         view["target"] = path
-    run = run_case(c, folder)
+    run = run_case(c, folder, seed=seed)
     params = {r["param"]: {"estimate": r["estimate"], "se": r["se"], "error": r["error"], "z": r["error_over_se"]}
               for r in run["rows"] if r.get("error") is not None and r.get("se")}
     return {"case": case["name"], "exit": run["exit"], "wall_s": round(run["wall_s"], 1), "ok": run["ok"],
@@ -125,7 +128,7 @@ def main(argv=None) -> int:
             if (name, seed) in done:
                 continue
             targets = render_targets(case, seed, spp, out / name / str(seed))
-            row = {**fit(case, targets, out / name / str(seed)), "seed": seed, "spp": spp}
+            row = {**fit(case, targets, out / name / str(seed), seed), "seed": seed, "spp": spp}
             print(json.dumps(row), flush=True)
             rows.append(row)
             with open(log, "a") as f:
