@@ -589,7 +589,7 @@ class Problem:
             size = v.target.size
             if v.tail_spread > 0:
                 col = np.zeros(self.n)
-                col[at:at + size] = v.tail_spread * self.t[at:at + size] * self.valid[at:at + size]
+                col[at:at + size] = v.tail_spread * self.t[at:at + size]  # `t` is 0 on masked elements
                 cols.append(col)
             at += size
         return np.stack(cols, axis=1) if cols else None
