@@ -1,10 +1,11 @@
 """The cost of a density grid, against its error: ms per spp of the patchy-fog scene (`grid_fog`) at several grid
-resolutions, with exact profiles (`tracking="exact"`) and with ratio tracking (`tracking="ratio"`), against the
+resolutions, with exact profiles (`tracking="exact"`) and with ratio tracking (`tracking="ratio"`; "ratio" interpolates
+8 texels a point, "stochastic" reads one, `lookup`), against the
 homogeneous medium of the same mean extinction in the same box, interleaved (A B C A B C), and Mitsuba 3's time on
 the same scene (optional, `--mitsuba`).
 
     python -m benchmarks.bench_grid [--size 32] [--spp 32] [--rounds 6] [--res 4 8 16 32] [--cells 8] [--mitsuba]
-        [--out bench_out/grid]
+        [--media homogeneous exact ratio stochastic] [--out bench_out/grid]
 
 The grids are the shipped patchy grid resampled (`data_synthetic/make_grid_fog.patchy_grid` at each resolution);
 each row's ratio is the median over rounds of (its time / the homogeneous time) within a round. Error: every round
@@ -45,6 +46,10 @@ def main(argv=None) -> int:
     ap.add_argument("--cells", type=int, default=8, help="majorant cells per axis of tracking='ratio'")
     ap.add_argument("--res", type=int, nargs="+", default=[4, 8, 16, 32])
     ap.add_argument("--max-depth", type=int, default=8)
+    ap.add_argument("--media", nargs="+", default=["homogeneous", "exact", "ratio", "stochastic"],
+                    choices=["homogeneous", "exact", "ratio", "stochastic"],
+                    help="the media timed (homogeneous first: the others' times are taken relative to it); "
+                         "'stochastic' is ratio tracking with one texel read per point (lookup='stochastic')")
     ap.add_argument("--mitsuba", action="store_true", help="also time Mitsuba 3 (scalar_rgb) on the 16^3 scene")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -54,10 +59,13 @@ def main(argv=None) -> int:
     for res in args.res:
         grid = patchy_grid(res)
         hom = jf.HomogeneousMedium(float(grid.mean()), 0.9, sf.scene.medium.phase, bounds=BOX)
-        media = {"homogeneous": hom,
+        every = {"homogeneous": hom,
                  "exact": jf.GridMedium(grid, 1.0, 0.9, sf.scene.medium.phase, bounds=BOX),
                  "ratio": jf.GridMedium(grid, 1.0, 0.9, sf.scene.medium.phase, bounds=BOX, tracking="ratio",
-                                        majorant_cells=args.cells)}
+                                        majorant_cells=args.cells, lookup="trilinear"),
+                 "stochastic": jf.GridMedium(grid, 1.0, 0.9, sf.scene.medium.phase, bounds=BOX, tracking="ratio",
+                                             majorant_cells=args.cells, lookup="stochastic")}
+        media = {k: every[k] for k in ["homogeneous"] + [m for m in args.media if m != "homogeneous"]}
         fns = {k: _render_fn(eqx.tree_at(lambda s: s.medium, sf.scene, m), args.spp) for k, m in media.items()}
         r = interleave(fns, args.rounds, warmup=1, keep=True)
         for k in media:
@@ -68,9 +76,9 @@ def main(argv=None) -> int:
                          "mean": float(imgs.mean()), "mean_se": float(imgs.mean(axis=(1, 2)).std(ddof=1))
                          / np.sqrt(len(imgs)), "pixel_var_per_spp": var, "var_x_ms": var * ms,
                          "compile_s": r[k]["compile_s"], "runs": r[k]})
-        ex, ra = rows[-2], rows[-1]
-        print(f"  {res}^3: exact {ex['ratio']:.1f}x, ratio {ra['ratio']:.1f}x homogeneous; variance x time "
-              f"ratio / exact {ra['var_x_ms'] / ex['var_x_ms']:.2f}", flush=True)
+        mine = rows[-len(media):]
+        print(f"  {res}^3: " + ", ".join(f"{r_['medium']} {r_['ratio']:.1f}x homogeneous, variance x ms "
+                                         f"{r_['var_x_ms']:.2f}" for r_ in mine[1:]), flush=True)
     mitsuba = None
     if args.mitsuba:
         spp_mi = 1024

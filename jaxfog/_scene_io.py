@@ -217,15 +217,16 @@ def _build_height(sigma_0, height_scale, base_height, albedo, g, phase, up, exte
 
 
 def _tracking_mode(values: dict, path: str) -> None:
-    """A grid's `tracking` is one of `_grid.TRACKING`."""
-    from ._grid import TRACKING
+    """A grid's `tracking` is one of `_grid.TRACKING`, its `lookup` one of `_grid.LOOKUP`."""
+    from ._grid import LOOKUP, TRACKING
 
-    if values["tracking"] not in TRACKING:
-        raise _Invalid(_join(path, "tracking"), repr(values["tracking"]),
-                       "expected one of " + ", ".join(repr(t) for t in TRACKING))
+    for name, allowed in (("tracking", TRACKING), ("lookup", LOOKUP)):
+        if values[name] not in allowed:
+            raise _Invalid(_join(path, name), repr(values[name]),
+                           "expected one of " + ", ".join(repr(t) for t in allowed))
 
 
-def _build_grid(file, bounds, scale, albedo, g, phase, extent, tracking, majorant_cells):
+def _build_grid(file, bounds, scale, albedo, g, phase, extent, tracking, majorant_cells, lookup):
     import jax.numpy as jnp
 
     from ._grid import GridMedium
@@ -236,7 +237,7 @@ def _build_grid(file, bounds, scale, albedo, g, phase, extent, tracking, majoran
         phase = HenyeyGreenstein(jnp.asarray(g, dtype=jnp.float32))
     grid, box = load_grid(file, bounds)  # checked (and the path resolved) by `_check_grid_file` before
     return GridMedium(density=grid, scale=scale, albedo=albedo, phase=phase, bounds=box, extent=float(extent),
-                      tracking=tracking, majorant_cells=int(majorant_cells))
+                      tracking=tracking, majorant_cells=int(majorant_cells), lookup=lookup)
 
 
 def _min_below_max(values: dict, path: str) -> None:
@@ -441,6 +442,7 @@ MEDIA = {
             "extent": Field(NUMBER, default=1000.0, range=POSITIVE),
             "tracking": Field(TEXT, default="exact"),
             "majorant_cells": Field(INTEGER, default=MAJORANT_CELLS, range=POSITIVE),
+            "lookup": Field(TEXT, default="stochastic"),
         },
         checks=(_phase_or_g, _tracking_mode),
         build=_build_grid,

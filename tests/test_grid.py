@@ -268,6 +268,8 @@ def test_the_shipped_grid_scene_loads_with_the_file_box(tmp_path):
     ({"file": "nowhere.vol"}, "medium.file: .*not found"),
     ({"file": "g.npy"}, "medium.file: .*bounds"),
     ({"file": "g.vol", "scale": -1}, "medium.scale"),
+    ({"file": "g.vol", "tracking": "delta"}, "medium.tracking: .*expected one of"),
+    ({"file": "g.vol", "lookup": "nearest"}, "medium.lookup: .*expected one of 'stochastic', 'trilinear'"),
 ])
 def test_bad_grid_media_in_scene_files_are_refused(tmp_path, medium, message):
     np.save(tmp_path / "g.npy", np.ones((2, 2, 2), np.float32))
@@ -456,6 +458,28 @@ def test_a_gauss_newton_grid_fit_finds_the_blob_closer_than_its_start():
     assert heldout_error(held, density, 512, key)["relative_rms"] < start["relative_rms"]
 
 
+def test_coarse_to_fine_levels_halve_each_axis_and_a_coarse_grid_is_read_as_the_renderer_reads_it():
+    """`level_shapes` halves each axis per level (rounded up, at least 1); `upsample` of a coarse grid at a finer
+    grid's texel centres (same box) equals the renderer's own trilinear lookup (`_grid.trilinear`, clamped at the
+    border) of the coarse grid at those points, and a grid read at its own shape is itself."""
+    from fitting.grid import level_shapes, upsample
+    from jaxfog._grid import trilinear
+
+    assert level_shapes((4, 4, 4), 2) == [(2, 2, 2), (4, 4, 4)]
+    assert level_shapes((5, 3, 1), 3) == [(2, 1, 1), (3, 2, 1), (5, 3, 1)]
+    coarse = np.random.default_rng(3).uniform(-1.0, 1.0, (2, 3, 4))  # (nz, ny, nx)
+    fine_shape = (5, 6, 7)
+    got = upsample(coarse, fine_shape)
+    flat = jnp.asarray(coarse.reshape(-1, 1), jnp.float32)
+    res = (4, 3, 2)  # (nx, ny, nz)
+    for z, y, x in [(0, 0, 0), (4, 5, 6), (2, 3, 3), (1, 0, 5), (3, 4, 1)]:
+        fine_centre = np.array([x, y, z], np.float64) + 0.5  # in fine texels, (x, y, z)
+        coarse_coord = fine_centre * np.array(res) / np.array(fine_shape[::-1]) - 0.5
+        want = float(trilinear(flat, res, jnp.asarray(coarse_coord, jnp.float32))[0])
+        assert got[z, y, x] == pytest.approx(want, abs=1e-6)
+    np.testing.assert_allclose(upsample(coarse, coarse.shape), coarse, atol=1e-12)
+
+
 def test_the_levenberg_marquardt_direction_solves_the_damped_normal_equations():
     """`lm_direction` with an explicit symmetric positive semi-definite matrix (rank-deficient, as a voxel Jacobian
     is): the conjugate-gradient step against `numpy.linalg.solve` of `(A + lambda I) delta = -g` within CG's
@@ -526,6 +550,19 @@ def test_fit_density_refuses_a_scene_without_a_grid(tmp_path, capsys):
     assert fit.main([str(scene), str(target), "--fit", "density", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "spot_fog.json" in err and "HomogeneousMedium" in err and "grid" in err
+    assert not out.exists()
+
+
+def test_a_coarse_to_fine_grid_fit_refuses_levels_it_cannot_run(tmp_path, capsys):
+    """`--levels` below 1, with Adam, or with no step left for the finest grid: one line, exit 2, nothing written."""
+    from fitting import grid
+
+    pair = [str(GRID_FIT / "front.json"), str(GRID_FIT / "front.exr")]
+    out = tmp_path / "r"
+    for extra, words in [(["--levels", "0"], "--levels 0"), (["--levels", "2", "--solver", "adam"], "gauss-newton"),
+                         (["--levels", "3", "--iterations", "8"], "more than 8")]:
+        assert grid.main(pair + ["--out", str(out)] + extra) == 2
+        assert words in capsys.readouterr().err
     assert not out.exists()
 
 

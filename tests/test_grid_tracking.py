@@ -19,7 +19,8 @@ import pytest
 
 import jaxfog as jf
 from jaxfog._grid import (CoarseProfile, GridMedium, block_bounds, coarse_profile, piecewise_depth,
-                          piecewise_inverse, ratio_tracking, ray_seed, seeded_uniform)
+                          piecewise_inverse, ratio_tracking, ray_seed, seeded_uniform, stochastic_trilinear,
+                          trilinear)
 from jaxfog._medium import box_interval, path_replay
 
 REPO = Path(__file__).resolve().parent.parent
@@ -33,9 +34,9 @@ def _grid(shape=(4, 5, 6, 1), seed=0, lo=0.0, hi=2.0):
     return np.random.default_rng(seed).uniform(lo, hi, shape).astype(np.float32)
 
 
-def _medium(grid, scale=0.7, cells=2, tracking="ratio"):
+def _medium(grid, scale=0.7, cells=2, tracking="ratio", lookup="stochastic"):
     return GridMedium(grid, scale, 0.8, jf.HenyeyGreenstein(0.3), bounds=BOX, tracking=tracking,
-                      majorant_cells=cells)
+                      majorant_cells=cells, lookup=lookup)
 
 
 def _shifted_rays(n, seed):
@@ -115,11 +116,42 @@ def test_piecewise_inverse_inverts_the_piecewise_depth():
 
 
 # ------------------------------------------------------------------------------------------- ratio tracking
-@pytest.mark.parametrize("cells,channels", [(1, 1), (3, 1), (2, 3)])
-def test_ratio_tracking_is_unbiased_for_the_exact_transmittance(cells, channels):
+@pytest.mark.parametrize("x", [(1.3, 2.6, 0.2), (0.0, 1.0, 2.0), (-0.4, 4.7, 3.5), (2.999, 0.001, 1.5)])
+def test_a_stochastic_lookup_is_one_of_the_cells_texels_drawn_with_the_trilinear_weights(x):
+    """`stochastic_trilinear` over 4,096 evenly spaced uniforms (midpoints): every value is one of the cell's texels
+    (between their min and max), and the mean and its gradient in the texel values equal `trilinear`'s value and
+    weights. The draw is a step function of the uniform with at most 8 steps, so the midpoint rule errs by at most 7
+    steps of 1/4096 each (times the texels' range for the value), plus float32 rounding of the remapped uniform."""
+    grid = _grid(shape=(4, 5, 6, 2), seed=31)
+    flat = jnp.asarray(grid.reshape(-1, 2))
+    res = (6, 5, 4)
+    xs = jnp.asarray(x, jnp.float32)
+    n = 4096
+    us = (jnp.arange(n, dtype=jnp.float32) + 0.5) / n
+
+    def mean_lookup(f):
+        return jnp.mean(jax.vmap(lambda u: stochastic_trilinear(f, res, xs, u))(us), axis=0)
+
+    draws = np.asarray(jax.vmap(lambda u: stochastic_trilinear(flat, res, xs, u))(us))
+    i0 = np.floor(np.asarray(x)).astype(int)
+    corners = grid[np.clip([i0[2], i0[2] + 1], 0, 3)][:, np.clip([i0[1], i0[1] + 1], 0, 4)][:, :, np.clip(
+        [i0[0], i0[0] + 1], 0, 5)].reshape(-1, 2)
+    assert np.all(draws >= corners.min(axis=0)) and np.all(draws <= corners.max(axis=0))
+    assert all(np.any(np.all(corners == d, axis=1)) for d in draws[:: 97])  # a texel, not a blend
+    spread = corners.max(axis=0) - corners.min(axis=0)
+    np.testing.assert_allclose(np.asarray(mean_lookup(flat)), np.asarray(trilinear(flat, res, xs)),
+                               atol=float(np.max(spread)) * 7 / n + 1e-5)
+    g_stoch = np.asarray(jax.grad(lambda f: mean_lookup(f)[0])(flat))
+    g_tri = np.asarray(jax.grad(lambda f: trilinear(f, res, xs)[0])(flat))
+    np.testing.assert_allclose(g_stoch, g_tri, atol=7 / n + 1e-5)
+
+
+@pytest.mark.parametrize("cells,channels,lookup", [(1, 1, "stochastic"), (3, 1, "stochastic"), (2, 3, "stochastic"),
+                                                   (3, 1, "trilinear"), (2, 3, "trilinear")])
+def test_ratio_tracking_is_unbiased_for_the_exact_transmittance(cells, channels, lookup):
     """4,000 rays along one line through the box (`_shifted_rays`), the estimate at four distances against
-    `exp(-tau)` from the exact profile: within 4 standard errors of the estimates' mean."""
-    med = _medium(_grid(shape=(4, 5, 6, channels), seed=7), cells=cells)
+    `exp(-tau)` from the exact profile: within 4 standard errors of the estimates' mean, with either lookup."""
+    med = _medium(_grid(shape=(4, 5, 6, channels), seed=7), cells=cells, lookup=lookup)
     exact = _medium(med.density, cells=cells, tracking="exact")
     os_, delta = _shifted_rays(4000, seed=8)
     d = jnp.asarray(LINE_D)
@@ -161,7 +193,7 @@ def test_ratio_tracking_reverse_mode_replays_its_points_and_equals_forward_mode(
     bumped = depths[:zeros]  # the points (distance = depth at rate 1) where a factor is exactly 0
 
     def estimate(a, b, scale):
-        def sigma_at(t):
+        def sigma_at(t, u):  # u: the stochastic lookup's uniform, unused here
             at_point = jnp.any(jnp.abs(t - jnp.asarray(bumped, jnp.float32)) < 1e-6) if zeros else False
             v = scale * (a + b * t)  # at a bumped point: exactly 1, with v's derivative
             return jnp.reshape(jnp.where(at_point, 1.0 + (v - jax.lax.stop_gradient(v)), v), (1,))
@@ -242,13 +274,16 @@ def test_ratio_tracking_refuses_the_reparam_estimator_and_bad_settings():
     for bad in (0, -2, 2.5, True):
         with pytest.raises(ValueError, match="majorant_cells must be an integer >= 1"):
             GridMedium(_grid(), 1.0, 0.9, scene.medium.phase, bounds=BOX, majorant_cells=bad)
+    with pytest.raises(ValueError, match="lookup must be one of"):
+        GridMedium(_grid(), 1.0, 0.9, scene.medium.phase, bounds=BOX, tracking="ratio", lookup="nearest")
 
 
 @pytest.mark.parametrize("grid,scale", [(np.zeros((3, 3, 3, 1), np.float32), 0.7), (_grid(seed=17), 0.0),
                                         (_grid(seed=18), 1e4), (np.full((2, 2, 2, 1), 3.0, np.float32), 1.0)])
 def test_ratio_tracking_values_and_forward_derivatives_are_finite_on_hard_cases(grid, scale):
     """Empty grid, scale 0, optical depths ~1e4 (every transmittance underflows), a constant grid (the majorant
-    equals the control: no points); rays through the box, from inside it, missing it; t = 0 and inf."""
+    equals the control: only `RESIDUAL_MARGIN`'s points, each factor 1); rays through the box, from inside it,
+    missing it; t = 0 and inf."""
     d = jnp.asarray(LINE_D)
 
     def values(s):
