@@ -697,6 +697,9 @@ def main(argv=None) -> int:
     except (ValueError, jaxfog.SceneError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    from jaxfog.tools import use_compilation_cache
+
+    use_compilation_cache()  # compiled programs kept on disk: a second run does not compile again ($JAXFOG_CACHE_DIR)
     paths = output_paths(args.out)
     truth = np.asarray(views[0][0].medium.density)[..., 0] * float(views[0][0].medium.scale) if args.truth else None
     print(f"fitting a {'x'.join(map(str, truth.shape if truth is not None else views[0][0].medium.density.shape[:3]))}"
