@@ -437,9 +437,10 @@ def ratio_tracking(cp: CoarseProfile, scale_hat, scale, sigma_at, t_end, seed) -
     `exp(-scale tau_control) prod_i (1 - (sigma(x_i) - scale c_i) / rho_i)` over the points `x_i` of a Poisson
     process of rate `rho = scale_hat (major - control)` (no derivative), drawn by exponential steps in its depth.
 
-    `sigma_at(t)` (C,) is the medium's extinction at distance `t` (differentiable: the voxel and scale derivatives
-    come from the factors); the control's depth carries `scale`'s derivative with zero variance. Each factor is in
-    [0, 1] while `scale = scale_hat`. Returns `(tau_control (C,) or scalar, product (C,))`: the transmittance is
+    `sigma_at(t, u)` (C,) is the medium's extinction at distance `t`, or an unbiased estimate of it from the point's
+    own uniform `u` (a one-texel lookup; differentiable: the voxel and scale derivatives come from the factors);
+    the control's depth carries `scale`'s derivative with zero variance. Each factor is in [0, 1] while `scale =
+    scale_hat`. Returns `(tau_control (C,) or scalar, product (C,))`: the transmittance is
     `exp(-tau_control) * product`, kept apart so that callers divide by a pdf without underflow.
 
     Derivatives: the points do not move with the parameters, so `d prod = sum_i (prod_{j != i} f_j) d f_i`. Forward
@@ -479,8 +480,8 @@ def _track_pass(ex_fn, geo, r, i):
     steps = jax.vmap(lambda j: -jnp.log1p(-seeded_uniform(seed, j)))(
         i + jnp.arange(1, TRACKING_BATCH + 1, dtype=jnp.uint32))
     rs = r + jnp.concatenate([jnp.zeros((1,), jnp.float32), jnp.cumsum(steps)])
-
-    us = jax.vmap(lambda j: seeded_uniform(seed ^ _LOOKUP_SALT, j))(i + jnp.arange(TRACKING_BATCH, dtype=jnp.uint32))
+    us = jax.vmap(lambda j: seeded_uniform(seed ^ _LOOKUP_SALT, j))(  # each point's lookup uniform
+        i + jnp.arange(TRACKING_BATCH, dtype=jnp.uint32))
 
     def factors(s, *c):
         def one(rr, uu):
