@@ -10,6 +10,7 @@ The cache directory is `$JAXFOG_CACHE_DIR` if set, else `$XDG_CACHE_HOME/jaxfog/
 from __future__ import annotations
 
 import os
+import time
 import warnings
 
 MIN_COMPILE_TIME_S = 0.0
@@ -58,4 +59,33 @@ def use_compilation_cache(path: str | None = None) -> str | None:
         jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_S)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    repair_access_times(path)
     return path
+
+
+def repair_access_times(path: str) -> int:
+    """Give every entry of the cache folder `path` that has no access-time file one (now); returns how many.
+
+    With a size limit, JAX reads every entry's access-time file before each write (`LRUCache._evict_if_needed`).
+    An entry written by a process without a limit (an older jaxfog, or JAX's own defaults on the same folder) has
+    none, and then every later write fails with FileNotFoundError: nothing new is cached, and each run compiles again
+    (seen on a shared cache with 173 such entries: 39 failed writes in one test run)."""
+    try:
+        from jax._src.lru_cache import _ATIME_SUFFIX, _CACHE_SUFFIX
+    except ImportError:  # JAX's private names; these are their values in JAX 0.4.30 to 0.10
+        _ATIME_SUFFIX, _CACHE_SUFFIX = "-atime", "-cache"
+    try:
+        names = set(os.listdir(path))
+    except OSError:
+        return 0
+    stamp = time.time_ns().to_bytes(8, "little")
+    repaired = 0
+    for name in names:
+        if name.endswith(_CACHE_SUFFIX) and name[: -len(_CACHE_SUFFIX)] + _ATIME_SUFFIX not in names:
+            try:
+                with open(os.path.join(path, name[: -len(_CACHE_SUFFIX)] + _ATIME_SUFFIX), "wb") as f:
+                    f.write(stamp)
+                repaired += 1
+            except OSError:
+                pass
+    return repaired

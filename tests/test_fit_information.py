@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from fitting.information import combination, fisher_report, instead, relative_scales
 
@@ -115,3 +116,31 @@ def test_the_compilation_cache_is_locked_for_processes_that_share_it(tmp_path):
     finally:
         jax.config.update("jax_compilation_cache_dir", keep[0])
         jax.config.update("jax_compilation_cache_max_size", keep[1])
+
+
+def test_cache_entries_without_an_access_time_get_one_so_that_later_writes_succeed(tmp_path):
+    """An entry written without a size limit has no access-time file, and JAX's size-limited cache then fails every
+    later write (FileNotFoundError while it reads each entry's access time before evicting). `use_compilation_cache`
+    gives such entries one; entries that have one keep theirs."""
+    import jax
+    from jax._src.lru_cache import LRUCache
+
+    from jaxfog._cache import repair_access_times, use_compilation_cache
+
+    folder = tmp_path / "c"
+    LRUCache(str(folder), max_size=1 << 20).put("kept", b"y" * 10)
+    kept_time = (folder / "kept-atime").read_bytes()
+    LRUCache(str(folder), max_size=-1).put("old", b"x" * 10)  # no limit: no access-time file
+    assert not (folder / "old-atime").exists()
+    with pytest.raises(FileNotFoundError):  # the failure this repairs
+        LRUCache(str(folder), max_size=1 << 20).put("new", b"z" * 10)
+    keep = (jax.config.jax_compilation_cache_dir, jax.config.jax_compilation_cache_max_size)
+    try:
+        assert use_compilation_cache(str(folder)) == str(folder)
+    finally:
+        jax.config.update("jax_compilation_cache_dir", keep[0])
+        jax.config.update("jax_compilation_cache_max_size", keep[1])
+    assert len((folder / "old-atime").read_bytes()) == 8 and (folder / "kept-atime").read_bytes() == kept_time
+    LRUCache(str(folder), max_size=1 << 20).put("new", b"z" * 10)
+    assert LRUCache(str(folder), max_size=1 << 20).get("new") == b"z" * 10
+    assert repair_access_times(str(folder)) == 0 and repair_access_times(str(tmp_path / "missing")) == 0
