@@ -1,7 +1,8 @@
 """Write the voxel-fit target set: a 4^3 blob over thin haze seen from four sides, and a fifth view from above held
 out of the fit, each rendered by jaxfog with the truth grid.
 
-    python data_synthetic/make_grid_fit.py     # rewrites data_synthetic/grid_fit/
+    python data_synthetic/make_grid_fit.py                        # rewrites data_synthetic/grid_fit/
+    python data_synthetic/make_grid_fit.py --res 8 --px 16 --out data_synthetic/grid_fit8   # the 8^3 set
 
 Writes `grid_fit/truth.vol` (the grid: 1/scene unit, x fastest, the box `[-1, -0.5, -1]` to `[1, 1.5, 1]`), one scene
 per view (`front`, `side`, `back`, `left`, and `top`, the held-out one: spot_fog's room, a point light above the
@@ -44,32 +45,42 @@ def blob_grid(res: int = RES) -> np.ndarray:
         np.float32)
 
 
-def scene_of(name: str) -> dict:
+def scene_of(name: str, res: int = RES, px: int = 8) -> dict:
     base = json.loads((HERE / "scenes" / "spot_fog.json").read_text())
     base["name"] = f"grid_fit_{name}"
-    base["description"] = (f"Voxel-fit view '{name}': a 4^3 blob over haze (truth.vol) in spot_fog's room, a point "
+    base["description"] = (f"Voxel-fit view '{name}': a {res}^3 blob over haze (truth.vol) in spot_fog's room, a point "
                            f"light above; written by data_synthetic/make_grid_fit.py")
     base["integrator"]["max_depth"] = 3
     base["medium"] = {"type": "grid", "file": "truth.vol", "albedo": 0.9, "g": 0.5}
     base["lights"] = [{"type": "point", "position": [0, 2.2, 0.5], "intensity": 20}]
     origin, target, up = CAMERAS[name]
-    base["camera"].update(origin=origin, target=target, up=up, width=8, height=8)
+    base["camera"].update(origin=origin, target=target, up=up, width=px, height=px)
     return base
 
 
-def main() -> None:
+def main(argv=None) -> None:
+    import argparse
+
     import jax
 
     import jaxfog as jf
 
-    OUT.mkdir(exist_ok=True)
-    jf.write_vol(OUT / "truth.vol", blob_grid(), BOX)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--res", type=int, default=RES, help="texels per axis of the truth grid (default 4)")
+    ap.add_argument("--px", type=int, default=8, help="each view's width and height in pixels (default 8)")
+    ap.add_argument("--out", default=str(OUT), help="the folder to write (default data_synthetic/grid_fit)")
+    args = ap.parse_args(argv)
+    if args.res < 2 or args.px < 1:
+        ap.error("--res must be at least 2 and --px at least 1")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    jf.write_vol(out / "truth.vol", blob_grid(args.res), BOX)
     for i, name in enumerate(CAMERAS):
-        (OUT / f"{name}.json").write_text(json.dumps(scene_of(name), indent=2) + "\n")
-        img = jf.render(jf.load_scene(OUT / f"{name}.json").scene, jax.random.key(100 + i), SPP)
-        jf.write_exr(OUT / f"{name}.exr", np.asarray(img), {"jaxfog:spp": SPP, "jaxfog:truth_grid": "truth.vol",
+        (out / f"{name}.json").write_text(json.dumps(scene_of(name, args.res, args.px), indent=2) + "\n")
+        img = jf.render(jf.load_scene(out / f"{name}.json").scene, jax.random.key(100 + i), SPP)
+        jf.write_exr(out / f"{name}.exr", np.asarray(img), {"jaxfog:spp": SPP, "jaxfog:truth_grid": "truth.vol",
                                                            "jaxfog:seed": 100 + i})
-        print(f"{OUT / name}.exr: mean {float(np.mean(img)):.4g}")
+        print(f"{out / name}.exr: mean {float(np.mean(img)):.4g}")
 
 
 if __name__ == "__main__":

@@ -24,10 +24,13 @@ The prior's weight is chosen by the data (`--smooth auto`, the discrepancy princ
 (the residual's mean square over the render noise plus the target's pixel-to-pixel noise), averaged over 20
 iterations, is compared with 1 from a third of the iterations on; below it the fit is reading noise and the weight
 grows 2x, above 2 it is too smooth to explain the images and the weight halves. Adam's step decays linearly to a
-fifth over the iterations. Per-voxel standard errors: the diagonal of the inverse of the Gauss-Newton information
-`sym(Ja^T W Jb)` (two independent renders per view, forward mode over every voxel) plus the prior's Hessian, for
-grids up to `DENSE_SE_MAX` voxels; for larger ones the inverse of its diagonal, estimated by Hutchinson's method
-from random-sign vector-Jacobian products (a lower bound: it ignores the voxels' correlations).
+fifth over the iterations. Either fit ends with one Gauss-Newton step on the dense information `sym(Ja^T W Jb)`
+(two independent renders per view, forward mode over every voxel) for grids up to `DENSE_SE_MAX` voxels, at the
+weight that maximises the evidence of the linearised model (`evidence_weight`, MacKay's fixed point: the prior
+is read as a Gaussian whose scale the data estimate); the per-voxel standard errors are the diagonal of the
+inverse of that information plus the prior's Hessian. For larger grids: the last iterate, and the inverse of the
+information's diagonal, estimated by Hutchinson's method from random-sign vector-Jacobian products (a lower bound:
+it ignores the voxels' correlations).
 
 Writes `OUT/RESULT_density.vol` (the fitted grid, in the units of the scenes' grid: with their `scale` it
 renders the fitted fog), `OUT/RESULT_density_se.vol` (its standard error, same units),
@@ -179,8 +182,11 @@ MAX_POLISH = 0.5
 """The largest change of a voxel's log-density in the closing Gauss-Newton step (a factor e^0.5 = 1.65): the step
 corrects the noise Adam's last iterations leave, and a larger one means the linearisation is not to be trusted."""
 
-DENSE_CHUNK = 64
-"""Voxels per forward-mode pass of `dense_information` (tangents carried together through one render)."""
+DENSE_CHUNK = 8
+"""Voxels per forward-mode pass of `dense_information` (tangents carried together through one render). Measured
+(`python -m benchmarks.bench_grid_se`, 2 cores, interleaved): 8 tangents a render cost 0.41x the time per tangent
+of 64 on an 8^3 grid at 16 x 16 px and 0.46x on the shipped 4^3 set (8 x 8 px); 4 and 16 cost 1.2x and 1.1x of 8
+(docs/results/grid.md)."""
 
 
 @eqx.filter_jit
@@ -243,18 +249,60 @@ def prior_hessian(shape, weight: float) -> np.ndarray:
     return 2.0 * weight * H
 
 
-def dense_gauss_newton(views, theta, spp: int, key, weight: float) -> tuple[np.ndarray, np.ndarray]:
-    """`(delta, cov)`: the Gauss-Newton step of the whole objective (data term plus `weight` times the neighbour
-    penalty) from `theta`, `-(F + H)^-1 (g + H theta)` with `(F, g)` of `dense_information` and `H` the prior's
-    Hessian (each coordinate at most `MAX_POLISH` in log-density), and the covariance `(F + H)^-1` of the
-    log-density. For grids up to `DENSE_SE_MAX` voxels."""
+def dense_gauss_newton(views, theta, spp: int, key, weight) -> tuple[np.ndarray, np.ndarray, float]:
+    """`(delta, cov, weight)`: the Gauss-Newton step of the whole objective (data term plus `weight` times the
+    neighbour penalty) from `theta`, `-(F + H)^-1 (g + H theta)` with `(F, g)` of `dense_information` and `H` the
+    prior's Hessian (each coordinate at most `MAX_POLISH` in log-density), and the covariance `(F + H)^-1` of the
+    log-density. `weight`: a number, or `("evidence", w0)` for the weight that maximises the evidence of the
+    linearised model (`evidence_weight`, from `w0`); the weight used is returned. For grids up to `DENSE_SE_MAX`
+    voxels."""
     shape = tuple(theta.shape)
     F, g = dense_information(views, theta, spp, key)
+    th = np.asarray(theta, np.float64).ravel()
+    if isinstance(weight, tuple):
+        weight = evidence_weight(F, g, th, prior_hessian(shape, 0.5), weight[1])
     H = prior_hessian(shape, weight)
     cov = np.linalg.pinv(F + H, hermitian=True)
-    th = np.asarray(theta, np.float64).ravel()
     delta = np.clip(-cov @ (g + H @ th), -MAX_POLISH, MAX_POLISH)
-    return delta.reshape(shape), cov
+    return delta.reshape(shape), cov, float(weight)
+
+
+EVIDENCE_STEPS = 100
+"""Fixed-point iterations of `evidence_weight` at most (it converges to 1e-6 in about 15 on the shipped set)."""
+
+EVIDENCE_RANGE = 2.0 ** 8
+"""How far (a factor either way) `evidence_weight` may move the weight from where the fit left it: the linearised
+model holds near the fitted point only, and its gradient's Monte Carlo noise makes the evidence grow without bound
+as the weight goes to 0 (steps along directions the images do not constrain)."""
+
+
+def evidence_weight(F, g, theta, L, w0: float) -> float:
+    """The prior weight `w` at which the linearised model is most probable (type-II maximum likelihood, MacKay
+    1992): the smoothness prior `exp(-w theta^T L theta)` is a Gaussian of precision `alpha L` (`alpha = 2 w`, `L`
+    the grid's graph Laplacian, rank `r`), and the evidence is stationary where `alpha theta_w^T L theta_w = gamma
+    = r - alpha tr(L (F + alpha L)^-1)` (`gamma`: the number of directions the prior does not decide), `theta_w`
+    the Gauss-Newton point at `w` from `theta` (`F`, `g`: `dense_information` there). Iterated from `w0`, kept
+    within `EVIDENCE_RANGE` of it. Its covariance `(F + alpha L)^-1` then counts the prior's pull (a smoothness
+    the data support) where the discrepancy principle's weight is chosen for the images' residual alone: on the
+    shipped set the voxels within 1 / 2 standard errors of the truth went from 55% / 86% to 61% / 94%
+    (docs/results/grid.md)."""
+    lam = np.linalg.eigvalsh(L)
+    rank = int(np.sum(lam > 1e-9 * max(lam.max(), 1e-30)))
+    w = float(w0)
+    for _ in range(EVIDENCE_STEPS):
+        A = F + 2.0 * w * L
+        cov = np.linalg.pinv(A, hermitian=True)
+        th = theta - np.clip(cov @ (g + 2.0 * w * (L @ theta)), -MAX_POLISH, MAX_POLISH)
+        rough = float(th @ L @ th)
+        gamma = rank - 2.0 * w * float(np.sum(L * cov))  # tr(L cov), both symmetric
+        if rough <= 0.0 or gamma <= 0.0:
+            break
+        w_new = float(np.clip(gamma / (2.0 * rough), w0 / EVIDENCE_RANGE, w0 * EVIDENCE_RANGE))
+        done = abs(w_new - w) <= 1e-6 * w
+        w = w_new
+        if done:
+            break
+    return w
 
 
 def voxel_se(views, theta, spp: int, key, weight: float) -> tuple[np.ndarray, str]:
@@ -263,7 +311,7 @@ def voxel_se(views, theta, spp: int, key, weight: float) -> tuple[np.ndarray, st
     diagonal ("diagonal": a lower bound)."""
     shape = tuple(theta.shape)
     if int(np.prod(shape)) <= DENSE_SE_MAX:
-        _, cov = dense_gauss_newton(views, theta, spp, key, weight)
+        _, cov, _ = dense_gauss_newton(views, theta, spp, key, weight)
         return _diagonal_se(cov, shape), "dense"
     info = np.asarray(hutchinson_diagonal(views, theta, spp, key))
     prior_diag = 2.0 * weight * sum(_neighbour_count(shape, a) for a in range(3))
@@ -384,8 +432,8 @@ def fit_grid_gauss_newton(views, *, iterations: int, spp: int, start, seed: int,
     point's (within `LOSS_TOLERANCE` standard errors) (the damping then shrinks by the model's agreement, Nielsen's rule); otherwise the damping quadruples
     and the next call recomputes the step at the current point. The prior's weight by the discrepancy principle
     after every `WEIGHT_EVERY` kept steps; losses are compared at the current weight (`gn_step` returns the two
-    terms). No closing step (the fit ends at a Gauss-Newton point): the standard errors come from the information
-    at the last point (`voxel_se`). `start`: a constant (1/scene unit) or a starting grid of the views' shape;
+    terms). Then the closing step (`_close`): for grids up to `DENSE_SE_MAX` voxels one dense Gauss-Newton step at
+    the evidence's weight, whose covariance gives the standard errors. `start`: a constant (1/scene unit) or a starting grid of the views' shape;
     `lift` maps the log-density to the truth's grid for the volume error (a coarse level's, `fit_coarse_to_fine`);
     without `standard_errors` the se is None. Returns `(density, se, history)` as `fit_grid`."""
     shape = views[0][0].medium.density.shape[:3]
@@ -424,10 +472,11 @@ def fit_grid_gauss_newton(views, *, iterations: int, spp: int, start, seed: int,
         log(f"  step {it}: chi2/px {chi2:.3f}, {'kept' if kept else 'undone'}, damping {damping:.3g}, prior weight "
             f"{weight:.3g}, " + (f"volume error {rec['volume_error']:.3f}, " if truth is not None else "")
             + f"{rec['seconds']:.0f} s")
-    density = np.exp(np.asarray(theta))
     if not standard_errors:
-        return density, None, history
-    se_theta = voxel_se(views, theta, max(spp, SE_SPP_MIN), jax.random.fold_in(key, 10 ** 6), weight)[0]
+        return np.exp(np.asarray(theta)), None, history
+    theta, se_theta = _close(views, theta, spp, jax.random.fold_in(key, 10 ** 6), weight, smooth, truth, history,
+                             log)
+    density = np.exp(np.asarray(theta))
     return density, density * se_theta, history
 
 
@@ -528,27 +577,30 @@ def fit_grid(views, *, iterations: int, spp: int, start: float, seed: int, smoot
             log(f"  iteration {it}: chi2/px {mean_chi2:.3f} (mean of {WINDOW}), prior weight {weight:.3g}, "
                 + (f"volume error {rec['volume_error']:.3f}, " if truth is not None else "")
                 + f"{rec['seconds']:.0f} s")
-    theta, se_theta = _close(views, theta, spp, jax.random.fold_in(key, 10 ** 6), weight, truth, history, log)
+    theta, se_theta = _close(views, theta, spp, jax.random.fold_in(key, 10 ** 6), weight, smooth, truth, history,
+                             log)
     density = np.exp(np.asarray(theta))
     return density, density * se_theta, history
 
 
-def _close(views, theta, spp, key, weight, truth, history, log):
+def _close(views, theta, spp, key, weight, smooth, truth, history, log):
     """The fit's last stage: for grids up to `DENSE_SE_MAX` voxels one Gauss-Newton step of the whole objective with
-    the dense information (`dense_gauss_newton`, renders of at least `SE_SPP_MIN` spp) and the standard errors from
-    its covariance; for larger grids Adam's last iterate and the diagonal standard errors (`voxel_se`)."""
+    the dense information (`dense_gauss_newton`, renders of at least `SE_SPP_MIN` spp) at the weight of the
+    evidence (`evidence_weight`; with `--smooth auto`, else the given weight), and the standard errors from its
+    covariance; for larger grids the last iterate and the diagonal standard errors (`voxel_se`)."""
     spp = max(spp, SE_SPP_MIN)
     if int(np.prod(theta.shape)) > DENSE_SE_MAX:
         return theta, voxel_se(views, theta, spp, key, weight)[0]
     t0 = time.perf_counter()
-    delta, cov = dense_gauss_newton(views, theta, spp, key, weight)
+    delta, cov, used = dense_gauss_newton(views, theta, spp, key, ("evidence", weight) if smooth == "auto" else weight)
     theta = theta + jnp.asarray(delta, theta.dtype)
-    rec = {"iteration": "gauss-newton", "largest_step": float(np.max(np.abs(delta))),
+    rec = {"iteration": "gauss-newton", "largest_step": float(np.max(np.abs(delta))), "weight": used,
            "seconds": history[-1]["seconds"] + time.perf_counter() - t0 if history else time.perf_counter() - t0}
     if truth is not None:
         rec["volume_error"] = volume_error(theta, truth)
     history.append(rec)
-    log(f"  closing Gauss-Newton step: largest change {rec['largest_step']:.3f} in log-density"
+    log(f"  closing Gauss-Newton step: prior weight {used:.3g}"
+        + (" (evidence)" if smooth == "auto" else "") + f", largest change {rec['largest_step']:.3f} in log-density"
         + (f", volume error {rec['volume_error']:.3f}" if truth is not None else ""))
     return theta, _diagonal_se(cov, theta.shape)
 
