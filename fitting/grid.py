@@ -212,15 +212,21 @@ def dense_information(views, theta, spp: int, key) -> tuple[np.ndarray, np.ndarr
     which reads as information, and a one-key gradient multiplies a residual by the Jacobian of its own paths),
     `W` the inverse of the target's noise plus one render's. Forward mode, one column per voxel. F's negative
     eigenvalues (noise) clipped to 0."""
+    from tqdm import tqdm
+
     n = int(np.prod(theta.shape))
     F, g = np.zeros((n, n)), np.zeros(n)
     eye = np.eye(n, dtype=np.float32)
+    bar = tqdm(total=2 * len(views) * n, unit="voxel", desc="information (forward mode, every voxel)",
+               file=sys.stderr, disable=None, leave=False)  # shown on a terminal only
     for i, (scene, target, var) in enumerate(views):
         halves = []
         for h in range(2):
             k = jax.random.fold_in(jax.random.fold_in(key, i), h)
-            parts = [_columns(theta, scene, jnp.asarray(eye[c:c + DENSE_CHUNK]), k, spp)
-                     for c in range(0, n, DENSE_CHUNK)]
+            parts = []
+            for c in range(0, n, DENSE_CHUNK):
+                parts.append(_columns(theta, scene, jnp.asarray(eye[c:c + DENSE_CHUNK]), k, spp))
+                bar.update(min(DENSE_CHUNK, n - c))
             J = np.concatenate([np.asarray(p[0], np.float64) for p in parts], axis=1)
             e = np.asarray(parts[0][1], np.float64) - np.asarray(target, np.float64).ravel()
             halves.append((J, e, np.asarray(parts[0][2], np.float64)))
@@ -230,6 +236,7 @@ def dense_information(views, theta, spp: int, key) -> tuple[np.ndarray, np.ndarr
         M = Ja.T @ (w[:, None] * Jb)
         F += 0.5 * (M + M.T)
         g += 0.5 * (Ja.T @ (w * eb) + Jb.T @ (w * ea))
+    bar.close()
     lam, V = np.linalg.eigh(F)
     return (V * np.maximum(lam, 0.0)) @ V.T, g
 
@@ -592,6 +599,9 @@ def _close(views, theta, spp, key, weight, smooth, truth, history, log):
     if int(np.prod(theta.shape)) > DENSE_SE_MAX:
         return theta, voxel_se(views, theta, spp, key, weight)[0]
     t0 = time.perf_counter()
+    n = int(np.prod(theta.shape))
+    log(f"  closing step: the information over {n} voxels ({2 * len(views) * -(-n // DENSE_CHUNK)} forward-mode "
+        f"renders at {spp} spp)")
     delta, cov, used = dense_gauss_newton(views, theta, spp, key, ("evidence", weight) if smooth == "auto" else weight)
     theta = theta + jnp.asarray(delta, theta.dtype)
     rec = {"iteration": "gauss-newton", "largest_step": float(np.max(np.abs(delta))), "weight": used,
