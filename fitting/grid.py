@@ -258,20 +258,27 @@ def prior_hessian(shape, weight: float) -> np.ndarray:
 
 def dense_gauss_newton(views, theta, spp: int, key, weight) -> tuple[np.ndarray, np.ndarray, float]:
     """`(delta, cov, weight)`: the Gauss-Newton step of the whole objective (data term plus `weight` times the
-    neighbour penalty) from `theta`, `-(F + H)^-1 (g + H theta)` with `(F, g)` of `dense_information` and `H` the
-    prior's Hessian (each coordinate at most `MAX_POLISH` in log-density), and the covariance `(F + H)^-1` of the
-    log-density. `weight`: a number, or `("evidence", w0)` for the weight that maximises the evidence of the
-    linearised model (`evidence_weight`, from `w0`); the weight used is returned. For grids up to `DENSE_SE_MAX`
-    voxels."""
+    neighbour penalty) from `theta` (`newton_step` with `(F, g)` of `dense_information`), and the covariance
+    `(F + H)^-1` of the log-density. `weight`: a number, or `("evidence", w0)` for the weight that maximises the
+    evidence of the linearised model (`evidence_weight`, from `w0`); the weight used is returned. For grids up to
+    `DENSE_SE_MAX` voxels."""
     shape = tuple(theta.shape)
     F, g = dense_information(views, theta, spp, key)
     th = np.asarray(theta, np.float64).ravel()
+    L = prior_hessian(shape, 0.5)  # the graph Laplacian
     if isinstance(weight, tuple):
-        weight = evidence_weight(F, g, th, prior_hessian(shape, 0.5), weight[1])
-    H = prior_hessian(shape, weight)
-    cov = np.linalg.pinv(F + H, hermitian=True)
-    delta = np.clip(-cov @ (g + H @ th), -MAX_POLISH, MAX_POLISH)
+        weight = evidence_weight(F, g, th, L, weight[1])
+    delta, cov = newton_step(F, g, th, L, weight)
     return delta.reshape(shape), cov, float(weight)
+
+
+def newton_step(F, g, theta, L, weight: float) -> tuple[np.ndarray, np.ndarray]:
+    """`(delta, cov)`: `-(F + H)^-1 (g + H theta)` with the prior's Hessian `H = 2 weight L` (`L` the graph
+    Laplacian, `prior_hessian(shape, 0.5)`), each coordinate at most `MAX_POLISH` in log-density, and `(F + H)^-1`
+    (pseudo-inverse); `F`, `g`, `theta` flat."""
+    H = 2.0 * weight * L
+    cov = np.linalg.pinv(F + H, hermitian=True)
+    return np.clip(-cov @ (g + H @ theta), -MAX_POLISH, MAX_POLISH), cov
 
 
 EVIDENCE_STEPS = 100
@@ -298,9 +305,8 @@ def evidence_weight(F, g, theta, L, w0: float) -> float:
     rank = int(np.sum(lam > 1e-9 * max(lam.max(), 1e-30)))
     w = float(w0)
     for _ in range(EVIDENCE_STEPS):
-        A = F + 2.0 * w * L
-        cov = np.linalg.pinv(A, hermitian=True)
-        th = theta - np.clip(cov @ (g + 2.0 * w * (L @ theta)), -MAX_POLISH, MAX_POLISH)
+        delta, cov = newton_step(F, g, theta, L, w)
+        th = theta + delta
         rough = float(th @ L @ th)
         gamma = rank - 2.0 * w * float(np.sum(L * cov))  # tr(L cov), both symmetric
         if rough <= 0.0 or gamma <= 0.0:
